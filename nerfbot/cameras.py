@@ -1,0 +1,196 @@
+"""Pinhole cameras, c2w poses and ray generation, in the OpenGL / nerfstudio convention.
+
+Convention (the project contract, see DESIGN.md): a pose is a camera-to-world 4x4 matrix whose
+rotation columns are the camera's x (right), y (up) and z (backwards: the camera looks along -z)
+axes in world coordinates. MuJoCo cameras use the same axes. The OpenCV convention (x right,
+y down, z forward) appears only at library boundaries, through :func:`opengl_to_opencv`.
+
+Pixel (u, v) has its centre at (u + 0.5, v + 0.5) in image coordinates whose origin is the top-left
+corner of the top-left pixel; ``v`` grows downwards.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+# Flips the camera's y and z axes: OpenGL camera frame <-> OpenCV camera frame (an involution).
+_GL_CV_FLIP = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def opengl_to_opencv(c2w: np.ndarray) -> np.ndarray:
+    """Convert c2w pose(s) (..., 4, 4) between the OpenGL and OpenCV camera conventions.
+
+    The conversion is its own inverse, so it also maps OpenCV poses back to OpenGL.
+    """
+    return np.asarray(c2w, dtype=np.float64) @ _GL_CV_FLIP
+
+
+opencv_to_opengl = opengl_to_opencv
+
+
+def focal_from_fov(fov_deg: float, size_px: int) -> float:
+    """Focal length in pixels for a full field of view ``fov_deg`` across ``size_px`` pixels."""
+    if not 0.0 < fov_deg < 180.0:
+        raise ValueError(f"field of view must be in (0, 180) degrees, got {fov_deg}")
+    return 0.5 * size_px / math.tan(math.radians(fov_deg) / 2.0)
+
+
+def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """c2w (4, 4) float64 of a camera at ``eye`` looking at ``target``, world ``up`` kept upright.
+
+    Falls back to world y as the up hint when the viewing direction is parallel to ``up``.
+    """
+    eye = np.asarray(eye, dtype=np.float64)
+    forward = np.asarray(target, dtype=np.float64) - eye
+    norm = np.linalg.norm(forward)
+    if not np.isfinite(norm) or norm < 1e-12:
+        raise ValueError(f"look_at: eye {eye.tolist()} and target coincide")
+    forward /= norm
+    up = np.asarray(up, dtype=np.float64)
+    right = np.cross(forward, up)
+    if np.linalg.norm(right) < 1e-9:
+        right = np.cross(forward, np.array([0.0, 1.0, 0.0]))
+    right /= np.linalg.norm(right)
+    cam_up = np.cross(right, forward)
+    c2w = np.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, cam_up, -forward, eye
+    return c2w
+
+
+def check_pose(c2w: np.ndarray, where: str, tol: float = 1e-4) -> np.ndarray:
+    """Validate one c2w matrix and return it as float64 (4, 4).
+
+    Raises ``ValueError`` naming ``where`` (file and field) if the matrix has the wrong shape, is
+    not finite, or its rotation is not orthonormal with determinant +1 (within ``tol``).
+    """
+    m = np.asarray(c2w, dtype=np.float64)
+    if m.shape == (3, 4):
+        m = np.vstack([m, [0.0, 0.0, 0.0, 1.0]])
+    if m.shape != (4, 4):
+        raise ValueError(f"{where}: expected a 4x4 (or 3x4) matrix, got shape {m.shape}")
+    if not np.all(np.isfinite(m)):
+        raise ValueError(f"{where}: pose contains non-finite values (NaN or inf)")
+    if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0], atol=tol):
+        raise ValueError(f"{where}: last row must be [0, 0, 0, 1], got {m[3].tolist()}")
+    rot = m[:3, :3]
+    err = np.abs(rot.T @ rot - np.eye(3)).max()
+    det = np.linalg.det(rot)
+    if err > tol or abs(det - 1.0) > tol:
+        raise ValueError(
+            f"{where}: pose is not rigid (rotation orthonormality error {err:.2e}, det {det:.4f}); "
+            "scaled or sheared poses are not supported"
+        )
+    return m
+
+
+@dataclass
+class Cameras:
+    """A batch of N pinhole cameras (undistorted).
+
+    Attributes:
+        c2w: (N, 4, 4) float32 camera-to-world poses, OpenGL convention, metres.
+        fx, fy, cx, cy: (N,) float32 intrinsics in pixels.
+        width, height: (N,) int64 image sizes in pixels.
+    """
+
+    c2w: torch.Tensor
+    fx: torch.Tensor
+    fy: torch.Tensor
+    cx: torch.Tensor
+    cy: torch.Tensor
+    width: torch.Tensor
+    height: torch.Tensor
+
+    def __len__(self) -> int:
+        return int(self.c2w.shape[0])
+
+    @staticmethod
+    def from_numpy(c2w, intrinsics, sizes) -> "Cameras":
+        """Build from c2w (N, 4, 4), intrinsics (N, 4) = fx, fy, cx, cy, sizes (N, 2) = w, h."""
+        intr = torch.as_tensor(np.asarray(intrinsics), dtype=torch.float32).reshape(-1, 4)
+        sz = torch.as_tensor(np.asarray(sizes), dtype=torch.int64).reshape(-1, 2)
+        return Cameras(
+            c2w=torch.as_tensor(np.asarray(c2w), dtype=torch.float32).reshape(-1, 4, 4),
+            fx=intr[:, 0].contiguous(),
+            fy=intr[:, 1].contiguous(),
+            cx=intr[:, 2].contiguous(),
+            cy=intr[:, 3].contiguous(),
+            width=sz[:, 0].contiguous(),
+            height=sz[:, 1].contiguous(),
+        )
+
+    def __getitem__(self, idx) -> "Cameras":
+        def pick(t):
+            out = t[idx]
+            return out.unsqueeze(0) if out.dim() == t.dim() - 1 else out
+
+        return Cameras(*(pick(getattr(self, f)) for f in
+                         ("c2w", "fx", "fy", "cx", "cy", "width", "height")))
+
+    def to(self, device) -> "Cameras":
+        return Cameras(*(getattr(self, f).to(device) for f in
+                         ("c2w", "fx", "fy", "cx", "cy", "width", "height")))
+
+    def rays(self, index: int, downscale: int = 1) -> "Rays":
+        """All rays of camera ``index`` in row-major pixel order, (H*W,) rays.
+
+        ``downscale`` > 1 renders a smaller image of the same field of view (pixel centres of
+        the coarser grid).
+        """
+        w = int(self.width[index]) // downscale
+        h = int(self.height[index]) // downscale
+        sx = float(self.width[index]) / w
+        sy = float(self.height[index]) / h
+        v, u = torch.meshgrid(torch.arange(h, dtype=torch.float32),
+                              torch.arange(w, dtype=torch.float32), indexing="ij")
+        px = (u.reshape(-1) + 0.5) * sx
+        py = (v.reshape(-1) + 0.5) * sy
+        return pixel_rays(self.c2w[index], self.fx[index], self.fy[index], self.cx[index],
+                          self.cy[index], px, py)
+
+
+@dataclass
+class Rays:
+    """A bundle of R rays.
+
+    Attributes:
+        origins: (R, 3) float32 ray origins in world metres.
+        directions: (R, 3) float32 unit directions; distance along a ray is ``t`` in metres.
+        z_per_t: (R,) float32, z-depth per unit ray distance (cosine to the optical axis), so
+            ``z_depth = t * z_per_t``.
+    """
+
+    origins: torch.Tensor
+    directions: torch.Tensor
+    z_per_t: torch.Tensor
+
+    def __len__(self) -> int:
+        return int(self.origins.shape[0])
+
+    def __getitem__(self, idx) -> "Rays":
+        return Rays(self.origins[idx], self.directions[idx], self.z_per_t[idx])
+
+
+def pixel_rays(c2w: torch.Tensor, fx, fy, cx, cy, px: torch.Tensor, py: torch.Tensor) -> Rays:
+    """Rays through image points (px, py), given in pixel units (pixel centres at +0.5).
+
+    Args:
+        c2w: (4, 4) or (R, 4, 4) camera-to-world, OpenGL convention.
+        fx, fy, cx, cy: scalars or (R,) tensors, pixels.
+        px, py: (R,) image coordinates in pixels, x to the right, y downwards.
+    """
+    dir_cam = torch.stack([(px - cx) / fx, -(py - cy) / fy, -torch.ones_like(px)], dim=-1)
+    norm = dir_cam.norm(dim=-1, keepdim=True)
+    dir_cam = dir_cam / norm
+    rot = c2w[..., :3, :3]
+    if rot.dim() == 2:
+        directions = dir_cam @ rot.T
+        origins = c2w[:3, 3].expand_as(directions)
+    else:
+        directions = torch.einsum("rij,rj->ri", rot, dir_cam)
+        origins = c2w[:, :3, 3]
+    return Rays(origins.contiguous(), directions.contiguous(), (1.0 / norm.squeeze(-1)).contiguous())
