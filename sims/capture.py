@@ -1,0 +1,159 @@
+"""Capture a posed-image dataset (RGB, z-depth, segmentation, manifest) of a MuJoCo scene.
+
+The dataset appears atomically: everything is written into a hidden sibling folder which is
+renamed into place only once complete, so ``out_dir`` is either absent/unchanged (failure) or a
+whole dataset (success). An existing ``out_dir`` is replaced only if it is empty or looks like a
+dataset (has a ``transforms*.json``), never an arbitrary folder.
+
+Run as ``python -m sims.capture --scene tabletop --views 60 --test-views 10 --out DIR``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import uuid
+from dataclasses import replace
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+from tqdm import tqdm
+
+from nerfbot.data.writers import FORMATS, open_writer
+from sims.camera import CaptureCamera, nearest_rigid
+from sims.manifest import scene_manifest
+from sims.rigs import RigConfig, parse_size, rig_poses
+from sims.scene import builtin_scenes, load_capture_model, resolve_scene
+
+log = logging.getLogger(__name__)
+
+
+def _looks_like_dataset(path: Path) -> bool:
+    return any(path.glob("transforms*.json"))
+
+
+def _check_destination(out_dir: Path) -> None:
+    """Refuse to overwrite anything but an empty folder or a previous dataset."""
+    if out_dir.exists():
+        if not out_dir.is_dir():
+            raise FileExistsError(f"{out_dir} exists and is not a folder")
+        if any(out_dir.iterdir()) and not _looks_like_dataset(out_dir):
+            raise FileExistsError(f"{out_dir} exists and is not a dataset (no transforms*.json); "
+                                  "refusing to replace it")
+
+
+def _move_into_place(tmp: Path, out_dir: Path) -> None:
+    """Rename the finished ``tmp`` folder to ``out_dir``, replacing an old dataset there."""
+    if not out_dir.exists():
+        os.rename(tmp, out_dir)
+        return
+    old = out_dir.with_name(f".{out_dir.name}.old-{uuid.uuid4().hex[:8]}")
+    os.rename(out_dir, old)
+    try:
+        os.rename(tmp, out_dir)
+    except BaseException:
+        os.rename(old, out_dir)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def _warn_view_dependent_lighting(model) -> None:
+    head = model.vis.headlight
+    if head.active and (np.any(np.asarray(head.diffuse) > 0) or np.any(np.asarray(head.specular) > 0)):
+        log.warning("the scene's headlight has diffuse/specular light; it moves with the camera, "
+                    "so shading changes with the viewpoint (set <headlight diffuse='0 0 0' "
+                    "specular='0 0 0'/> for a static radiance field)")
+
+
+def _scene_source(scene) -> str:
+    text = str(scene)
+    if isinstance(scene, str) and text in builtin_scenes() and "/" not in text:
+        return f"builtin:{text}"
+    return str(resolve_scene(scene))
+
+
+def capture(scene: str | Path, rig: RigConfig, test_rig: Optional[RigConfig], out_dir: Path,
+            size: Optional[int | Sequence[int]] = None, fmt: str = "nerfstudio",
+            manifest: bool = True, progress: bool = True) -> Path:
+    """Render ``rig`` (train split) and ``test_rig`` (test split) views of ``scene`` to ``out_dir``.
+
+    Args:
+        scene: built-in scene name (e.g. "tabletop") or path to an MJCF file.
+        rig, test_rig: camera rigs (see :mod:`sims.rigs`); ``test_rig`` may be None. Both must
+            share image size and field of view (the formats store one camera).
+        out_dir: dataset folder to create (or replace, if it holds a previous dataset).
+        size: image size N or (W, H) overriding both rigs' sizes; None keeps the rigs' sizes.
+        fmt: "nerfstudio" (``transforms.json``) or "blender" (``transforms_{split}.json``).
+        manifest: write the scene manifest as the top-level ``scene`` object.
+        progress: show a progress bar.
+
+    Returns:
+        ``out_dir`` as a Path. Files: RGB PNG (uint8), z-depth ``.npy`` (float32 metres, ``inf``
+        on sky), segmentation ``.npy`` (int32 geom ids, -1 on sky), per the format's layout
+        (see :mod:`nerfbot.data.writers`).
+
+    Raises:
+        FileNotFoundError / ValueError: bad scene, rig, pose or size (before anything is written);
+        FileExistsError: ``out_dir`` is a non-dataset folder; RuntimeError: no OpenGL backend.
+    """
+    if fmt not in FORMATS:
+        raise ValueError(f"unknown dataset format '{fmt}' (choose from {FORMATS})")
+    if size is not None:
+        width, height = parse_size(size)
+        rig = replace(rig, width=width, height=height)
+        test_rig = replace(test_rig, width=width, height=height) if test_rig else None
+    if test_rig is not None and (test_rig.size != rig.size or test_rig.fov_deg != rig.fov_deg):
+        raise ValueError(f"train and test rigs must share image size and fov, got "
+                         f"{rig.size} @ {rig.fov_deg} deg vs {test_rig.size} @ {test_rig.fov_deg} deg")
+
+    model, data = load_capture_model(scene)
+    _warn_view_dependent_lighting(model)
+    views = [("train", i, p) for i, p in enumerate(rig_poses(rig))]
+    if test_rig is not None and (test_rig.count > 0 or test_rig.kind == "explicit"):
+        views += [("test", i, p) for i, p in enumerate(rig_poses(test_rig))]
+    for split, i, pose in views:  # fail before writing anything
+        nearest_rigid(pose, f"{split} view {i}")
+    meta = scene_manifest(model, data, resolve_scene(scene).stem, _scene_source(scene))
+
+    out_dir = Path(out_dir).expanduser().absolute()
+    _check_destination(out_dir)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out_dir.with_name(f".{out_dir.name}.partial-{uuid.uuid4().hex[:8]}")
+    tmp.mkdir()
+    try:
+        with CaptureCamera(model, data, rig.width, rig.height, rig.fov_deg) as cam:
+            k = cam.intrinsics
+            writer = open_writer(fmt, tmp, k.fx, k.fy, k.cx, k.cy, k.width, k.height)
+            for split, i, pose in tqdm(views, desc=f"capture {meta['name']}", unit="view",
+                                       disable=not progress):
+                frame = cam.render(pose, where=f"{split} view {i}")
+                writer.add_frame(frame.rgb, frame.c2w, split, depth=frame.depth,
+                                 segmentation=frame.segmentation)
+        writer.finish(meta if manifest else None)
+        _check_destination(out_dir)
+        _move_into_place(tmp, out_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    n_test = sum(1 for v in views if v[0] == "test")
+    log.info("wrote %d views (%d train, %d test) of '%s' to %s", len(views), len(views) - n_test,
+             n_test, meta["name"], out_dir)
+    return out_dir
+
+
+def main(argv: Optional[Sequence[str]] = None) -> Path:
+    """``python -m sims.capture``: the same options as ``nerfbot capture``."""
+    import argparse
+
+    from sims.cli import add_capture_arguments, run_capture
+
+    parser = argparse.ArgumentParser(prog="python -m sims.capture", description=__doc__.split("\n")[0])
+    add_capture_arguments(parser)
+    return run_capture(parser.parse_args(argv))
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    main()
