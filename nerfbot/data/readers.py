@@ -1,0 +1,286 @@
+"""`load_dataset`: detect the format of a posed-image dataset, load and validate it.
+
+Formats:
+
+- **nerfstudio / instant-ngp**: a folder with ``transforms.json`` (or any other ``.json`` file
+  given directly). See :mod:`nerfbot.data.nerfstudio`.
+- **Blender synthetic / D-NeRF**: a folder with ``transforms_train.json`` (and
+  ``transforms_val.json``, ``transforms_test.json`` when present), or one of those files
+  given directly. See :mod:`nerfbot.data.blender`.
+
+A folder holding both ``transforms.json`` and ``transforms_train.json`` is read as nerfstudio.
+
+Default splits (nerfstudio without ``*_filenames`` lists): frames 0, 8, 16, ... (every 8th,
+starting with the first) are "test", the others "train"; a single-frame dataset is all "train".
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional, Union
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from nerfbot.data.blender import parse_blender
+from nerfbot.data.bounds import as_aabb, estimate_bounds_with_rule, pad_bounds
+from nerfbot.data.dataset import Dataset
+from nerfbot.data.errors import DatasetError
+from nerfbot.data.images import (composite, read_depth, read_image, read_mask,
+                                 read_segmentation, undistorter)
+from nerfbot.data.intrinsics import Intrinsics, resolve_intrinsics
+from nerfbot.data.nerfstudio import parse_nerfstudio
+from nerfbot.data.spec import FrameSpec, ParsedDataset, positive_int
+
+log = logging.getLogger(__name__)
+
+WHITE = (1.0, 1.0, 1.0)
+BLACK = (0.0, 0.0, 0.0)
+#: Every TEST_EVERY-th frame (from frame 0) is a test frame when the dataset names no splits.
+TEST_EVERY = 8
+_BLENDER_JSON = re.compile(r"transforms_(train|val|test)\.json")
+
+
+@dataclass
+class _Frame:
+    """One loaded frame: arrays (H, W, ...) of the undistorted image and its companions."""
+
+    rgb: np.ndarray
+    alpha: Optional[np.ndarray]
+    intr: Intrinsics
+    depth: Optional[np.ndarray]
+    mask: Optional[np.ndarray]
+    seg: Optional[np.ndarray]
+
+
+def parse_background(value) -> Optional[tuple]:
+    """None, "white", "black" or an (r, g, b) triple in [0, 1] -> None or a float triple."""
+    if value is None:
+        return None
+    if isinstance(value, str):
+        named = {"white": WHITE, "black": BLACK}.get(value.lower())
+        if named is None:
+            raise ValueError(f"background: expected None, 'white', 'black' or (r, g, b) in "
+                             f"[0, 1], got {value!r}")
+        return named
+    try:
+        rgb = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        rgb = np.empty(0)
+    if rgb.shape != (3,) or not np.all(np.isfinite(rgb)) or rgb.min() < 0 or rgb.max() > 1:
+        raise ValueError(f"background: expected None, 'white', 'black' or (r, g, b) in [0, 1], "
+                         f"got {value!r}")
+    return tuple(float(c) for c in rgb)
+
+
+def default_splits(n: int) -> dict[str, list[int]]:
+    """Frames ``0, 8, 16, ...`` are "test", the rest "train" (all "train" when ``n < 2``)."""
+    if n < 2:
+        return {"train": list(range(n)), "test": []}
+    test = list(range(0, n, TEST_EVERY))
+    return {"train": [i for i in range(n) if i % TEST_EVERY], "test": test}
+
+
+def _parse(path: Path) -> ParsedDataset:
+    if not path.exists():
+        raise DatasetError(f"{path}: dataset not found (no such folder or JSON file)")
+    if path.is_dir():
+        if (path / "transforms.json").is_file():
+            return parse_nerfstudio(path / "transforms.json")
+        if (path / "transforms_train.json").is_file():
+            return parse_blender(path)
+        raise DatasetError(f"{path}: not a dataset folder: no transforms.json (nerfstudio) or "
+                           "transforms_train.json (Blender / D-NeRF) in it")
+    if path.suffix.lower() != ".json":
+        raise DatasetError(f"{path}: expected a dataset folder or a transforms .json file")
+    if _BLENDER_JSON.fullmatch(path.name):
+        return parse_blender(path.parent)
+    return parse_nerfstudio(path)
+
+
+def _check_declared_size(spec: FrameSpec, width: int, height: int) -> None:
+    for key, actual in (("w", width), ("h", height)):
+        if key in spec.camera:
+            value, where = spec.camera[key]
+            declared = positive_int(value, where)
+            if declared != actual:
+                raise DatasetError(
+                    f"{spec.where}.file_path: image {spec.image_path} is {width}x{height} "
+                    f"(w x h) but {key} is declared as {declared} ({where})")
+
+
+def _load_frame(spec: FrameSpec, background: tuple) -> _Frame:
+    """Read, check, composite and undistort one frame."""
+    rgb, alpha = read_image(spec.image_path, f"{spec.where}.file_path")
+    height, width = rgb.shape[:2]
+    _check_declared_size(spec, width, height)
+    intr = resolve_intrinsics(spec.camera, width, height, spec.where)
+    shape = (height, width)
+    depth = mask = seg = None
+    if spec.depth_path is not None:
+        depth = read_depth(spec.depth_path, f"{spec.where}.{spec.depth_field}", shape,
+                           spec.depth_scale)
+    if spec.mask_path is not None:
+        mask = read_mask(spec.mask_path, f"{spec.where}.mask_path", shape)
+    if spec.segmentation_path is not None:
+        seg = read_segmentation(spec.segmentation_path, f"{spec.where}.segmentation_path", shape)
+    if alpha is not None:
+        rgb = composite(rgb, alpha, background)
+    if intr.distorted:
+        u = undistorter(intr)
+        if alpha is not None:
+            rgb = u.linear(rgb, tuple(255.0 * c for c in background))
+            alpha = u.linear(alpha, 0)
+        else:
+            rgb = u.linear(rgb, 0)
+        if depth is not None:
+            depth = u.nearest(depth, np.nan)
+        if seg is not None:
+            seg = u.nearest(seg, -1)
+        if mask is not None:
+            mask = u.nearest(mask, False) & u.valid
+        elif not u.valid.all():
+            mask = u.valid.copy()
+    return _Frame(rgb, alpha, intr, depth, mask, seg)
+
+
+def _load_frames(parsed: ParsedDataset, background: tuple) -> list[_Frame]:
+    """Load all frames in order, on a few threads (OpenCV decoding releases the GIL)."""
+    specs = parsed.frames
+    n = len(specs)
+    bar = dict(total=n, desc=f"loading {parsed.root.name or parsed.root}", unit="frame",
+               disable=True if n < 50 else None)
+    workers = min(4, os.cpu_count() or 1, n)
+    if workers <= 1:
+        return [_load_frame(s, background) for s in tqdm(specs, **bar)]
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        futures = [pool.submit(_load_frame, s, background) for s in specs]
+        try:
+            return [f.result() for f in tqdm(futures, **bar)]
+        except BaseException:
+            for f in futures:
+                f.cancel()
+            raise
+
+
+def _check_mixed_sizes(specs: list[FrameSpec], frames: list[_Frame]) -> None:
+    """Frames sharing global intrinsics (same JSON, none of their own) must share a size."""
+    first: dict[str, tuple[FrameSpec, tuple]] = {}
+    for spec, frame in zip(specs, frames):
+        if spec.per_frame_intrinsics:
+            continue
+        size = (frame.intr.width, frame.intr.height)
+        ref = first.setdefault(spec.group, (spec, size))
+        if ref[1] != size:
+            raise DatasetError(
+                f"{spec.where}.file_path: image {spec.image_path} is {size[0]}x{size[1]} but "
+                f"{ref[0].where} is {ref[1][0]}x{ref[1][1]}; images of different sizes need "
+                "per-frame intrinsics (w, h, fl_x, ... in each frame)")
+
+
+def _all_or_none(specs: list[FrameSpec], field: str) -> Optional[list]:
+    """Per-frame ``field`` values, None if no frame has one; an error if only some do."""
+    values = [getattr(s, field) for s in specs]
+    present = [i for i, v in enumerate(values) if v is not None]
+    if not present:
+        return None
+    if len(present) != len(values):
+        missing = next(i for i, v in enumerate(values) if v is None)
+        raise DatasetError(f"{specs[missing].where}.{field}: missing, but other frames carry "
+                           f"one (e.g. {specs[present[0]].where})")
+    return values
+
+
+def _bounds(aabb, parsed: ParsedDataset, c2w, intrinsics, sizes) -> tuple[np.ndarray, str, str]:
+    """(aabb (2, 3), aabb_source, rule): user > manifest scene.bounds (padded) > cameras."""
+    manifest_box = None
+    if parsed.manifest is not None and "bounds" in parsed.manifest:
+        try:
+            manifest_box = as_aabb(parsed.manifest["bounds"],
+                                   f"{parsed.manifest_where}: scene.bounds", strict=False)
+        except ValueError as e:
+            raise DatasetError(str(e)) from None
+    if aabb is not None:
+        return as_aabb(aabb, "aabb argument", strict=True), "user", "user"
+    if manifest_box is not None:
+        return pad_bounds(manifest_box), "manifest", "manifest_padded"
+    box, rule = estimate_bounds_with_rule(c2w, intrinsics, sizes)
+    return box, "cameras", rule
+
+
+def load_dataset(path: Union[str, os.PathLike], *, aabb=None, background=None) -> Dataset:
+    """Load a nerfstudio, instant-ngp, Blender or D-NeRF dataset into a :class:`Dataset`.
+
+    Args:
+        path: a dataset folder, or a transforms JSON file inside one.
+        aabb: optional (2, 3) [[xmin, ymin, zmin], [xmax, ymax, zmax]] in metres; overrides
+            the manifest's bounds and the camera-based estimate.
+        background: colour RGBA images are composited on: None (white), "white", "black" or
+            an (r, g, b) triple in [0, 1]. For RGB-only datasets, None leaves
+            ``Dataset.background = "learned"`` and a colour is recorded as given.
+
+    Returns:
+        The validated dataset: undistorted uint8 RGB images (and alpha), float64 poses and
+        intrinsics, optional depth (float32 metres), masks, segmentations, times and joints,
+        splits, bounds. Distorted (OPENCV / OPENCV_FISHEYE) images are undistorted keeping the
+        same K; pixels whose source falls outside the distorted image are marked invalid in
+        ``masks`` (a mask is created for that frame if it had none).
+
+    Raises:
+        DatasetError: malformed or missing input; the message names the file and the field.
+        ValueError: an invalid ``aabb`` or ``background`` argument.
+    """
+    bg = parse_background(background)
+    parsed = _parse(Path(path))
+    try:
+        frames = _load_frames(parsed, bg if bg is not None else WHITE)
+    finally:
+        undistorter.cache_clear()
+    specs = parsed.frames
+    _check_mixed_sizes(specs, frames)
+    times = _all_or_none(specs, "time")
+    joints = _all_or_none(specs, "joints")
+
+    c2w = np.stack([s.c2w for s in specs])
+    intrinsics = np.array([[f.intr.fx, f.intr.fy, f.intr.cx, f.intr.cy] for f in frames],
+                          dtype=np.float64)
+    sizes = np.array([[f.intr.width, f.intr.height] for f in frames], dtype=np.int64)
+    box, source, rule = _bounds(aabb, parsed, c2w, intrinsics, sizes)
+
+    any_alpha = any(f.alpha is not None for f in frames)
+    dataset_bg = bg if bg is not None else (WHITE if any_alpha else "learned")
+    extras = dict(parsed.extras)
+    extras.update(
+        json_files=parsed.json_files,
+        source_camera_models=[f.intr.model for f in frames],
+        undistorted=[f.intr.distorted for f in frames],
+        bounds_rule=rule,
+    )
+    log.info("loaded %d frames (%s) from %s; bounds from %s", len(frames), parsed.format,
+             parsed.root, source)
+    return Dataset(
+        root=parsed.root,
+        format=parsed.format,
+        file_paths=[s.file_path for s in specs],
+        images=[f.rgb for f in frames],
+        alphas=[f.alpha for f in frames],
+        c2w=c2w,
+        intrinsics=intrinsics,
+        sizes=sizes,
+        depths=[f.depth for f in frames],
+        masks=[f.mask for f in frames],
+        segmentations=[f.seg for f in frames],
+        times=None if times is None else np.asarray(times, dtype=np.float32),
+        joints=joints,
+        splits=parsed.splits if parsed.splits is not None else default_splits(len(frames)),
+        aabb=box,
+        aabb_source=source,
+        manifest=parsed.manifest,
+        background=dataset_bg,
+        extras=extras,
+    )

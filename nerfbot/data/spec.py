@@ -1,0 +1,275 @@
+"""JSON side of the readers: read a transforms file and validate its fields into a `FrameSpec`.
+
+Nothing here touches image pixels; :mod:`nerfbot.data.images` loads what a `FrameSpec` names.
+Every error is a :class:`DatasetError` whose message starts with ``<json file>: <field>:``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import posixpath
+from dataclasses import dataclass
+from pathlib import Path, PureWindowsPath
+from typing import Any, Optional
+
+import numpy as np
+
+from nerfbot.cameras import check_pose
+from nerfbot.data.errors import DatasetError
+
+#: Intrinsics / distortion keys that may appear at the top level or per frame (per frame wins).
+CAMERA_KEYS = (
+    "fl_x", "fl_y", "cx", "cy", "w", "h",
+    "camera_angle_x", "camera_angle_y", "x_fov", "y_fov",
+    "camera_model", "is_fisheye", "k1", "k2", "k3", "k4", "p1", "p2",
+)
+#: A frame carrying any of these has its own intrinsics (so its image size may differ).
+PER_FRAME_INTRINSIC_KEYS = CAMERA_KEYS[:10]
+
+#: Extensions tried when a ``file_path`` names no existing file (Blender omits ".png").
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg")
+
+
+@dataclass
+class FrameSpec:
+    """One frame as described by the JSON, validated but not loaded.
+
+    Attributes:
+        where: "<json file>: frames[i]", the prefix of every error about this frame.
+        file_path: image path exactly as written in the JSON.
+        image_path: resolved image file (inside the dataset root).
+        c2w: (4, 4) float64 camera-to-world pose, OpenGL convention, metres.
+        camera: intrinsics / distortion key -> (value, "<json file>: <field>"), global values
+            overridden by per-frame ones.
+        per_frame_intrinsics: the frame carries its own focal length or size.
+        group: the JSON file the frame's global intrinsics come from.
+        depth_path, mask_path, segmentation_path: resolved files or None.
+        depth_field: the JSON field that named the depth file (for messages).
+        time: float in [0, 1] or None.
+        joints: joint name -> position (radians or metres), or None.
+        depth_scale: metres per unit of integer depth images.
+    """
+
+    where: str
+    file_path: str
+    image_path: Path
+    c2w: np.ndarray
+    camera: dict
+    per_frame_intrinsics: bool
+    group: str
+    depth_path: Optional[Path] = None
+    depth_field: str = "depth_file_path"
+    mask_path: Optional[Path] = None
+    segmentation_path: Optional[Path] = None
+    time: Optional[float] = None
+    joints: Optional[dict] = None
+    depth_scale: float = 1e-3
+
+
+@dataclass
+class ParsedDataset:
+    """A dataset's JSON, validated: what to load and how to split it.
+
+    Attributes:
+        root: the dataset folder; every file path lies inside it.
+        format: "nerfstudio", "blender" or "dnerf".
+        frames: the frames in output order.
+        splits: split name -> frame indices, or None to apply the default rule.
+        manifest: the top-level ``scene`` object, or None.
+        manifest_where: the JSON file the manifest came from (for messages).
+        json_files: the transforms files read.
+        extras: top-level values passed through untouched (``applied_transform``, ...).
+    """
+
+    root: Path
+    format: str
+    frames: list
+    splits: Optional[dict]
+    manifest: Optional[dict]
+    manifest_where: str
+    json_files: list
+    extras: dict
+
+
+def read_json(path: Path) -> dict:
+    """Parse a JSON file whose top level must be an object; errors name line and column."""
+    if not path.is_file():
+        raise DatasetError(f"{path}: file not found")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:
+        raise DatasetError(f"{path}: not UTF-8 text (bad byte at offset {e.start})") from None
+    except OSError as e:
+        raise DatasetError(f"{path}: cannot read: {e.strerror or e}") from None
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise DatasetError(
+            f"{path}: invalid JSON at line {e.lineno}, column {e.colno}: {e.msg}") from None
+    if not isinstance(data, dict):
+        raise DatasetError(f"{path}: top level must be a JSON object, got {type(data).__name__}")
+    return data
+
+
+def number(value: Any, where: str, *, positive: bool = False) -> float:
+    """A finite JSON number (bools rejected), optionally > 0."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise DatasetError(f"{where}: expected a number, got {value!r}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise DatasetError(f"{where}: must be finite, got {value!r}")
+    if positive and v <= 0.0:
+        raise DatasetError(f"{where}: must be > 0, got {value!r}")
+    return v
+
+
+def positive_int(value: Any, where: str) -> int:
+    """A positive integer (an integral float such as 800.0 is accepted)."""
+    v = number(value, where, positive=True)
+    if v != int(v):
+        raise DatasetError(f"{where}: expected an integer, got {value!r}")
+    return int(v)
+
+
+def normalise_rel(value: str) -> str:
+    """Canonical form of a relative path for matching: '/' separators, no './', no 'a/..'."""
+    return posixpath.normpath(value.replace("\\", "/"))
+
+
+def resolve_path(root: Path, value: Any, where: str) -> Path:
+    """Resolve a dataset-relative path, rejecting absolute paths and ones escaping ``root``.
+
+    The check is lexical (``..`` components are collapsed before the test); symbolic links
+    inside the dataset are followed as the user laid them out.
+    """
+    if not isinstance(value, str) or not value.strip():
+        raise DatasetError(f"{where}: expected a non-empty relative path string, got {value!r}")
+    if value.startswith(("/", "\\")) or PureWindowsPath(value).drive or Path(value).is_absolute():
+        raise DatasetError(f"{where}: absolute path {value!r} is not allowed; "
+                           "paths must be relative to the dataset folder")
+    norm = normalise_rel(value)
+    if norm in (".", "..") or norm.startswith("../"):
+        raise DatasetError(f"{where}: path {value!r} escapes the dataset folder {root}")
+    return root / norm
+
+
+def existing_file(root: Path, value: Any, where: str, what: str,
+                  extensions: tuple[str, ...] = ()) -> Path:
+    """:func:`resolve_path`, then require a regular file (trying ``extensions`` if missing)."""
+    p = resolve_path(root, value, where)
+    if p.is_file():
+        return p
+    for ext in extensions:
+        q = p.with_name(p.name + ext)
+        if q.is_file():
+            return q
+    tried = f" (also tried {', '.join(extensions)})" if extensions else ""
+    raise DatasetError(f"{where}: {what} file not found: {p}{tried}")
+
+
+def pose(value: Any, where: str) -> np.ndarray:
+    """A rigid (4, 4) float64 c2w from a JSON 4x4 or 3x4 nested list."""
+    if value is None:
+        raise DatasetError(f"{where}: missing")
+    try:
+        m = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DatasetError(f"{where}: expected a 4x4 matrix of numbers, got {value!r}") from None
+    try:
+        return check_pose(m, where)
+    except ValueError as e:
+        raise DatasetError(str(e)) from None
+
+
+def time_value(value: Any, where: str) -> float:
+    """A frame time, finite and in [0, 1]."""
+    t = number(value, where)
+    if not 0.0 <= t <= 1.0:
+        raise DatasetError(f"{where}: time must be in [0, 1], got {value!r}")
+    return t
+
+
+def joints_value(value: Any, where: str) -> dict:
+    """Joint name -> finite position."""
+    if not isinstance(value, dict):
+        raise DatasetError(f"{where}: expected an object joint name -> position, got {value!r}")
+    return {str(k): number(v, f"{where}.{k}") for k, v in value.items()}
+
+
+def camera_fields(obj: dict, where: str) -> dict:
+    """The intrinsics / distortion keys of ``obj`` as key -> (value, "<where><key>")."""
+    return {k: (obj[k], f"{where}{k}") for k in CAMERA_KEYS if k in obj}
+
+
+def parse_frame(frame: Any, i: int, json_path: Path, root: Path, global_camera: dict,
+                depth_scale: float = 1e-3,
+                *, image_extensions: tuple[str, ...] = IMAGE_EXTENSIONS) -> FrameSpec:
+    """Validate ``frames[i]`` of ``json_path`` (a dict) into a :class:`FrameSpec`.
+
+    Reads the fields shared by all formats: ``file_path``, ``transform_matrix``, per-frame
+    intrinsics, ``depth_file_path`` / ``depth_path``, ``mask_path``, ``segmentation_path``,
+    ``time`` and ``joints``. Files named by the frame must exist inside ``root``.
+    """
+    where = f"{json_path}: frames[{i}]"
+    if not isinstance(frame, dict):
+        raise DatasetError(f"{where}: expected an object, got {type(frame).__name__}")
+    if "file_path" not in frame:
+        raise DatasetError(f"{where}.file_path: missing")
+    file_path = frame["file_path"]
+    image_path = existing_file(root, file_path, f"{where}.file_path", "image", image_extensions)
+    if "transform_matrix" not in frame:
+        raise DatasetError(f"{where}.transform_matrix: missing")
+    c2w = pose(frame["transform_matrix"], f"{where}.transform_matrix")
+
+    camera = dict(global_camera)
+    camera.update(camera_fields(frame, f"{where}."))
+    spec = FrameSpec(
+        where=where, file_path=file_path, image_path=image_path, c2w=c2w, camera=camera,
+        per_frame_intrinsics=any(k in frame for k in PER_FRAME_INTRINSIC_KEYS),
+        group=str(json_path), depth_scale=depth_scale,
+    )
+    for field in ("depth_file_path", "depth_path"):
+        if frame.get(field) is not None:
+            spec.depth_path = existing_file(root, frame[field], f"{where}.{field}", "depth")
+            spec.depth_field = field
+            break
+    if frame.get("mask_path") is not None:
+        spec.mask_path = existing_file(root, frame["mask_path"], f"{where}.mask_path", "mask")
+    if frame.get("segmentation_path") is not None:
+        spec.segmentation_path = existing_file(
+            root, frame["segmentation_path"], f"{where}.segmentation_path", "segmentation")
+    if "time" in frame:
+        spec.time = time_value(frame["time"], f"{where}.time")
+    if "joints" in frame:
+        spec.joints = joints_value(frame["joints"], f"{where}.joints")
+    return spec
+
+
+def frames_list(meta: dict, json_path: Path) -> list:
+    """The non-empty ``frames`` list of a transforms file."""
+    frames = meta.get("frames")
+    if frames is None:
+        raise DatasetError(f"{json_path}: frames: missing")
+    if not isinstance(frames, list):
+        raise DatasetError(f"{json_path}: frames: expected a list, got {type(frames).__name__}")
+    if not frames:
+        raise DatasetError(f"{json_path}: frames: empty, the dataset has no frames")
+    return frames
+
+
+def manifest_value(meta: dict, json_path: Path) -> Optional[dict]:
+    """The top-level ``scene`` manifest object, or None when absent."""
+    scene = meta.get("scene")
+    if scene is not None and not isinstance(scene, dict):
+        raise DatasetError(f"{json_path}: scene: expected an object (the scene manifest), "
+                           f"got {type(scene).__name__}")
+    return scene
+
+
+def depth_scale_value(meta: dict, json_path: Path) -> float:
+    """Metres per unit of integer depth images: ``depth_unit_scale_factor``, default 1e-3."""
+    if "depth_unit_scale_factor" not in meta:
+        return 1e-3
+    return number(meta["depth_unit_scale_factor"], f"{json_path}: depth_unit_scale_factor",
+                  positive=True)
