@@ -174,6 +174,9 @@ class Rays:
     def __getitem__(self, idx) -> "Rays":
         return Rays(self.origins[idx], self.directions[idx], self.z_per_t[idx])
 
+    def to(self, device) -> "Rays":
+        return Rays(self.origins.to(device), self.directions.to(device), self.z_per_t.to(device))
+
 
 def pixel_rays(c2w: torch.Tensor, fx, fy, cx, cy, px: torch.Tensor, py: torch.Tensor) -> Rays:
     """Rays through image points (px, py), given in pixel units (pixel centres at +0.5).

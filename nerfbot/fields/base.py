@@ -1,0 +1,84 @@
+"""The one interface every radiance field implements."""
+
+from __future__ import annotations
+
+import abc
+from typing import Optional
+
+import torch
+from torch import nn
+
+
+class TruncExp(torch.autograd.Function):
+    """exp(x) with its argument clamped to <= 15 in the forward pass and to [-15, 15] in the
+    gradient (Instant-NGP's ``trunc_exp``): density stays finite (<= 3.3e6 /m) and gradients
+    never overflow, yet saturated densities still receive a gradient."""
+
+    @staticmethod
+    def forward(ctx, x):
+        ctx.save_for_backward(x)
+        return torch.exp(x.clamp_max(15.0))
+
+    @staticmethod
+    def backward(ctx, grad):
+        (x,) = ctx.saved_tensors
+        return grad * torch.exp(x.clamp(-15.0, 15.0))
+
+
+def trunc_exp(x: torch.Tensor) -> torch.Tensor:
+    return TruncExp.apply(x)
+
+
+class Field(nn.Module, metaclass=abc.ABCMeta):
+    """A radiance field: density and view-dependent colour at world points (metres).
+
+    ``cond`` carries what the scene needs beyond position and direction (time, joints) and is
+    None for static scenes. Every variant implements both methods; samplers, renderers,
+    trainers and queries only ever call these.
+    """
+
+    @abc.abstractmethod
+    def density(self, x: torch.Tensor, cond: Optional[torch.Tensor] = None
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+        """x: (N, 3) world points -> sigma (N,) >= 0 in 1/m, geometry features (N, C)."""
+
+    @abc.abstractmethod
+    def color(self, feat: torch.Tensor, d: torch.Tensor, cond: Optional[torch.Tensor] = None
+              ) -> torch.Tensor:
+        """feat: (N, C) from :meth:`density`, d: (N, 3) unit view directions -> rgb (N, 3) in [0, 1]."""
+
+    def forward(self, x: torch.Tensor, d: torch.Tensor, cond: Optional[torch.Tensor] = None
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+        sigma, feat = self.density(x, cond)
+        return sigma, self.color(feat, d, cond)
+
+
+def mlp(in_dim: int, hidden: int, n_hidden_layers: int, out_dim: int) -> nn.Sequential:
+    """Plain ReLU MLP: in -> [hidden] * n_hidden_layers -> out (no output activation)."""
+    layers: list[nn.Module] = []
+    d = in_dim
+    for _ in range(n_hidden_layers):
+        layers += [nn.Linear(d, hidden), nn.ReLU(inplace=True)]
+        d = hidden
+    layers.append(nn.Linear(d, out_dim))
+    return nn.Sequential(*layers)
+
+
+class BoxNormalizer(nn.Module):
+    """Maps world points into [0, 1]^3 of the cube enclosing the scene bounds (isotropic)."""
+
+    def __init__(self, aabb):
+        super().__init__()
+        aabb = torch.as_tensor(aabb, dtype=torch.float32)
+        center = 0.5 * (aabb[0] + aabb[1])
+        half = 0.5 * (aabb[1] - aabb[0]).max()
+        self.register_buffer("aabb", aabb.clone())
+        self.register_buffer("cube_min", center - half)
+        self.register_buffer("cube_size", 2.0 * half)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return (x - self.cube_min) / self.cube_size
+
+    def inside(self, x: torch.Tensor) -> torch.Tensor:
+        """(N,) bool: the point lies within the scene bounds (not just the cube)."""
+        return ((x >= self.aabb[0]) & (x <= self.aabb[1])).all(-1)

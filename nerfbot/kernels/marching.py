@@ -1,0 +1,90 @@
+"""Numba CPU kernels that march rays through an occupancy grid and emit packed samples.
+
+A ray advances from ``t_begin`` in steps ``dt(t) = clamp(t * cone, dt_min, dt_max)``; the
+interval [t, t + dt] becomes a sample when the grid cell holding its midpoint is occupied. Empty
+cells are crossed without emitting anything, so compute goes only where the scene is.
+
+The plain-torch twin is :func:`nerfbot.sampling.march_reference`; tests assert they agree.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+
+@njit(inline="always")
+def _occupied(px, py, pz, occ, gmin, inv_cell, g):
+    ix = int(np.floor((px - gmin[0]) * inv_cell))
+    iy = int(np.floor((py - gmin[1]) * inv_cell))
+    iz = int(np.floor((pz - gmin[2]) * inv_cell))
+    if ix < 0 or iy < 0 or iz < 0 or ix >= g or iy >= g or iz >= g:
+        return False
+    return occ[ix, iy, iz] != 0
+
+
+@njit(inline="always")
+def _step(t, dt_min, dt_max, cone):
+    return min(max(t * cone, dt_min), dt_max)
+
+
+@njit(parallel=True, fastmath=False, cache=True, nogil=True)
+def march_count(origins, dirs, t_begin, t_far, occ, gmin, cell, dt_min, dt_max, cone, max_per_ray,
+                counts, t_stop):
+    """Count the samples each ray would emit (first pass).
+
+    Args:
+        origins, dirs: (R, 3) float32 rays (unit directions), metres.
+        t_begin, t_far: (R,) float32 where marching starts / must stop.
+        occ: (G, G, G) uint8 occupancy of the cube [gmin, gmin + G * cell]^3.
+        gmin: (3,) float64 cube corner; cell: cell edge in metres.
+        dt_min, dt_max, cone: step rule ``dt = clamp(t * cone, dt_min, dt_max)``.
+        max_per_ray: stop a ray after this many samples (use a large number for "no limit").
+        counts: (R,) int64 output, samples per ray.
+        t_stop: (R,) float32 output, where each ray stopped (resume marching from there).
+    """
+    g = occ.shape[0]
+    inv_cell = 1.0 / cell
+    for r in prange(origins.shape[0]):
+        t = np.float64(t_begin[r])
+        tf = np.float64(t_far[r])
+        n = 0
+        while t < tf and n < max_per_ray:
+            dt = _step(t, dt_min, dt_max, cone)
+            tm = t + 0.5 * dt
+            if _occupied(origins[r, 0] + tm * dirs[r, 0], origins[r, 1] + tm * dirs[r, 1],
+                         origins[r, 2] + tm * dirs[r, 2], occ, gmin, inv_cell, g):
+                n += 1
+            t += dt
+        counts[r] = n
+        t_stop[r] = t
+
+
+@njit(parallel=True, fastmath=False, cache=True, nogil=True)
+def march_fill(origins, dirs, t_begin, t_far, occ, gmin, cell, dt_min, dt_max, cone, max_per_ray,
+               starts, ray_indices, t_starts, t_ends):
+    """Write the samples counted by :func:`march_count` (second pass, same arguments).
+
+    Args:
+        starts: (R,) int64 index of each ray's first sample in the packed arrays.
+        ray_indices: (M,) int64 output, the ray of each sample (sorted, contiguous per ray).
+        t_starts, t_ends: (M,) float32 output, the sample intervals along the ray.
+    """
+    g = occ.shape[0]
+    inv_cell = 1.0 / cell
+    for r in prange(origins.shape[0]):
+        t = np.float64(t_begin[r])
+        tf = np.float64(t_far[r])
+        n = 0
+        k = starts[r]
+        while t < tf and n < max_per_ray:
+            dt = _step(t, dt_min, dt_max, cone)
+            tm = t + 0.5 * dt
+            if _occupied(origins[r, 0] + tm * dirs[r, 0], origins[r, 1] + tm * dirs[r, 1],
+                         origins[r, 2] + tm * dirs[r, 2], occ, gmin, inv_cell, g):
+                ray_indices[k] = r
+                t_starts[k] = t
+                t_ends[k] = min(t + dt, tf)
+                k += 1
+                n += 1
+            t += dt

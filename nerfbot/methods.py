@@ -1,0 +1,95 @@
+"""The registry of methods: a name -> how to build its model and how to train it.
+
+This is the only place that knows which field goes with which sampler; everything else asks
+the registry.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+from typing import Callable
+
+import numpy as np
+
+from nerfbot.background import make_background
+from nerfbot.fields.nerf import NeRFField, NeRFFieldConfig
+from nerfbot.fields.ngp import NGPField, NGPFieldConfig
+from nerfbot.models import (HierarchicalModel, HierarchicalModelConfig, Model, OccupancyModel,
+                            OccupancyModelConfig)
+
+
+@dataclass(frozen=True)
+class MethodSpec:
+    """How to build and train one method.
+
+    Attributes:
+        build: (aabb (2, 3), background spec, options dict, seed) -> Model.
+        lr: Adam learning rate.
+        adam_eps: Adam epsilon (tiny for hash tables, as in Instant-NGP).
+        rays_per_batch: rays of the first training batch (occupancy models adapt it).
+        lr_final_factor: the learning rate decays exponentially to lr * this at the end of the
+            budget.
+        description: one line for ``nerfbot train --help``.
+        configs: the config dataclasses whose fields are the method's options.
+    """
+
+    build: Callable[..., Model]
+    lr: float
+    adam_eps: float
+    rays_per_batch: int
+    lr_final_factor: float
+    description: str
+    configs: tuple = ()
+
+
+def _apply(config, options: dict):
+    """Dataclass ``config`` with the ``options`` whose keys match its field names."""
+    names = {f.name for f in fields(config)}
+    picked = {k: v for k, v in options.items() if k in names}
+    return replace(config, **picked)
+
+
+def _build_ngp(aabb, background, options, seed) -> Model:
+    field = NGPField(aabb, _apply(NGPFieldConfig(), options), seed=seed)
+    return OccupancyModel(field, make_background(background), aabb,
+                          _apply(OccupancyModelConfig(), options))
+
+
+def _build_nerf(aabb, background, options, seed) -> Model:
+    cfg = _apply(NeRFFieldConfig(), options)
+    return HierarchicalModel(NeRFField(aabb, cfg), NeRFField(aabb, cfg), make_background(background),
+                             aabb, _apply(HierarchicalModelConfig(), options))
+
+
+METHODS: dict[str, MethodSpec] = {
+    "ngp": MethodSpec(_build_ngp, lr=1e-2, adam_eps=1e-15, rays_per_batch=4096,
+                      lr_final_factor=0.1,
+                      description="Instant-NGP hash grid + occupancy-grid marching (fast default)",
+                      configs=(NGPFieldConfig, OccupancyModelConfig)),
+    "nerf": MethodSpec(_build_nerf, lr=5e-4, adam_eps=1e-8, rays_per_batch=1024,
+                       lr_final_factor=0.1,
+                       description="vanilla NeRF, positional encoding, coarse + fine (reference)",
+                       configs=(NeRFFieldConfig, HierarchicalModelConfig)),
+}
+
+
+def option_names(method: str) -> list[str]:
+    """Names of the config fields a method accepts as ``--option key=value``."""
+    return sorted(f.name for c in get_method(method).configs for f in fields(c))
+
+
+def get_method(name: str) -> MethodSpec:
+    if name not in METHODS:
+        raise ValueError(f"unknown method {name!r}; available: {', '.join(sorted(METHODS))}")
+    return METHODS[name]
+
+
+def build_model(method: str, aabb, background="learned", options: dict | None = None,
+                seed: int = 0) -> Model:
+    """Build the model of ``method`` for a scene with bounds ``aabb`` (2, 3) metres."""
+    options = dict(options or {})
+    unknown = set(options) - set(option_names(method))
+    if unknown:
+        raise ValueError(f"method {method!r} has no option(s) {sorted(unknown)}; "
+                         f"known: {option_names(method)}")
+    return get_method(method).build(np.asarray(aabb, dtype=np.float32), background, options, seed)

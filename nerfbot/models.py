@@ -1,0 +1,230 @@
+"""Models: a field (or two), a sampling strategy and a background, rendering rays.
+
+A model turns :class:`~nerfbot.cameras.Rays` into a :class:`~nerfbot.rendering.RenderOutput`
+and knows its own training loss and per-step upkeep. Two strategies cover the variants:
+
+* :class:`OccupancyModel` - occupancy-grid marching over packed samples, early termination
+  (Instant-NGP and every grid-like field);
+* :class:`HierarchicalModel` - coarse stratified + fine pdf sampling with two fields (NeRF).
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from nerfbot.cameras import Rays
+from nerfbot.fields.base import Field
+from nerfbot.rendering import RenderOutput, composite, render_weights
+from nerfbot.sampling import OccupancyGrid, pdf_samples, ray_aabb, stratified_samples
+
+
+class Model(nn.Module, metaclass=abc.ABCMeta):
+    """Common surface of every model: render rays, compute the training loss, upkeep."""
+
+    field: Field
+    background: nn.Module
+    aabb: torch.Tensor
+
+    @abc.abstractmethod
+    def render_rays(self, rays: Rays, generator: Optional[torch.Generator] = None,
+                    cond: Optional[torch.Tensor] = None) -> RenderOutput:
+        """Render (R,) rays; in eval mode without randomness."""
+
+    def loss(self, rays: Rays, target_rgb: torch.Tensor,
+             generator: Optional[torch.Generator] = None,
+             cond: Optional[torch.Tensor] = None) -> tuple[torch.Tensor, RenderOutput]:
+        """Photometric MSE of the rendered rays against ``target_rgb`` (R, 3)."""
+        out = self.render_rays(rays, generator, cond)
+        return F.mse_loss(out.rgb, target_rgb), out
+
+    def before_step(self, step: int, generator: Optional[torch.Generator] = None) -> dict:
+        """Upkeep before optimisation step ``step`` (e.g. occupancy updates); returns log values."""
+        return {}
+
+    def rays_for_next_batch(self, last: Optional[RenderOutput], n_rays: int) -> int:
+        """How many rays the next training batch should hold."""
+        return n_rays
+
+
+@dataclass
+class OccupancyModelConfig:
+    grid_resolution: int = 64
+    """G: occupancy cells per axis of the cube enclosing the bounds."""
+    grid_update_every: int = 16
+    """Steps between occupancy-grid updates."""
+    grid_threshold: float = 0.01
+    """A cell is occupied when one marching step through it is at least this opaque."""
+    render_steps: int = 512
+    """Marching steps along the cube's diagonal: sets the smallest step dt_min."""
+    cone_angle: float = 0.0
+    """Steps grow as t * cone_angle (0: constant steps), clamped to [dt_min, 8 dt_min]."""
+    early_stop_transmittance: float = 1e-3
+    """Rendering stops along a ray once its transmittance falls below this."""
+    train_early_termination: bool = True
+    """In training, evaluate colours and gradients only for samples before the ray saturates
+    (a cheap density-only pass finds them)."""
+    samples_per_batch: int = 1 << 17
+    """Target number of samples per training batch; the ray count adapts to it."""
+    inference_round_samples: int = 16
+    """Samples marched per ray per round when rendering with early termination."""
+
+
+class OccupancyModel(Model):
+    """Occupancy-grid ray marching over packed samples (Instant-NGP's renderer)."""
+
+    def __init__(self, field: Field, background: nn.Module, aabb,
+                 config: OccupancyModelConfig | None = None):
+        super().__init__()
+        self.config = cfg = config or OccupancyModelConfig()
+        self.field = field
+        self.background = background
+        self.register_buffer("aabb", torch.as_tensor(aabb, dtype=torch.float32).clone())
+        self.grid = OccupancyGrid(self.aabb, cfg.grid_resolution, cfg.grid_threshold)
+        self.dt_min = self.grid.cube_size * math.sqrt(3.0) / cfg.render_steps
+        self.dt_max = 8.0 * self.dt_min if cfg.cone_angle > 0 else self.dt_min
+
+    # -- sampling ----------------------------------------------------------------------------
+    def _march(self, rays: Rays, t_begin, t_far, max_per_ray: int = 1 << 30):
+        return self.grid.march(rays.origins, rays.directions, t_begin, t_far, self.dt_min,
+                               self.dt_max, self.config.cone_angle, max_per_ray)
+
+    def _points(self, rays: Rays, s) -> tuple[torch.Tensor, torch.Tensor]:
+        t_mid = 0.5 * (s.t_starts + s.t_ends)
+        o, d = rays.origins[s.ray_indices], rays.directions[s.ray_indices]
+        return o + d * t_mid[:, None], d
+
+    def render_rays(self, rays: Rays, generator=None, cond=None) -> RenderOutput:
+        """Training mode: one marching pass (jittered starts), gradients through every kept sample.
+        Eval mode: rounds of marching with early termination (see :meth:`_render_inference`)."""
+        if not self.training:
+            return self._render_inference(rays, cond)
+        t_near, t_far, _ = ray_aabb(rays.origins, rays.directions, self.aabb)
+        jitter = torch.rand(t_near.shape, generator=generator, device=t_near.device)
+        s = self._march(rays, t_near + jitter * self.dt_min, t_far)
+        ray_idx, ts, te = s.ray_indices, s.t_starts, s.t_ends
+        n = len(rays)
+        if self.config.train_early_termination and ray_idx.numel():
+            with torch.no_grad():
+                x, _ = self._points(rays, s)
+                sigma, _ = self.field.density(x, _gather(cond, ray_idx))
+                _, trans = render_weights(sigma, ts, te, ray_idx, n)
+                keep = trans > 1e-4
+            ray_idx, ts, te = ray_idx[keep], ts[keep], te[keep]
+        t_mid = 0.5 * (ts + te)
+        d = rays.directions[ray_idx]
+        x = rays.origins[ray_idx] + d * t_mid[:, None]
+        sigma, feat = self.field.density(x, _gather(cond, ray_idx))
+        rgb = self.field.color(feat, d, _gather(cond, ray_idx))
+        return composite(sigma, rgb, ts, te, ray_idx, n, self.background(rays.directions),
+                         t_far, rays.z_per_t, with_median=False)
+
+    @torch.no_grad()
+    def _render_inference(self, rays: Rays, cond=None) -> RenderOutput:
+        """March in rounds of a few samples per ray, dropping rays whose transmittance fell
+        below ``early_stop_transmittance``; then composite all kept samples at once."""
+        n = len(rays)
+        t_near, t_far, hit = ray_aabb(rays.origins, rays.directions, self.aabb)
+        t_cur = t_near.clone()
+        log_trans = torch.zeros(n, dtype=torch.float64)
+        alive = hit.clone()
+        pieces = []
+        stop = math.log(self.config.early_stop_transmittance)
+        while bool(alive.any()):
+            ids = torch.nonzero(alive).squeeze(-1)
+            sub = rays[ids]
+            s = self._march(sub, t_cur[ids], t_far[ids], self.config.inference_round_samples)
+            t_cur[ids] = s.t_stop
+            if s.ray_indices.numel():
+                gidx = ids[s.ray_indices]
+                x, d = self._points(sub, s)
+                sigma, feat = self.field.density(x, _gather(cond, gidx))
+                rgb = self.field.color(feat, d, _gather(cond, gidx))
+                pieces.append((gidx, s.t_starts, s.t_ends, sigma, rgb))
+                tau = (sigma * (s.t_ends - s.t_starts)).double().clamp_max(1e4)
+                log_trans.index_add_(0, gidx, -tau)
+            alive = alive & (t_cur < t_far) & (log_trans > stop)
+        if pieces:
+            gidx, ts, te, sigma, rgb = (torch.cat(p) for p in zip(*pieces))
+            order = torch.sort(gidx, stable=True).indices  # rounds are in t order per ray
+            gidx, ts, te, sigma, rgb = gidx[order], ts[order], te[order], sigma[order], rgb[order]
+        else:
+            gidx = torch.zeros(0, dtype=torch.long)
+            ts = te = sigma = torch.zeros(0)
+            rgb = torch.zeros(0, 3)
+        return composite(sigma, rgb, ts, te, gidx, n, self.background(rays.directions), t_far,
+                         rays.z_per_t)
+
+    # -- upkeep ------------------------------------------------------------------------------
+    def before_step(self, step: int, generator=None) -> dict:
+        if step == 0 or step % self.config.grid_update_every:
+            return {}
+        frac = self.grid.update(lambda x: self.field.density(x)[0], self.dt_min, generator)
+        return {"occupied": frac}
+
+    def rays_for_next_batch(self, last: Optional[RenderOutput], n_rays: int) -> int:
+        if last is None or last.num_samples == 0:
+            return n_rays
+        want = n_rays * self.config.samples_per_batch / max(last.num_samples, 1)
+        return int(min(max(0.5 * n_rays, min(want, 2.0 * n_rays)), 1 << 16)) or 1
+
+
+@dataclass
+class HierarchicalModelConfig:
+    coarse_samples: int = 64
+    """Stratified samples per ray for the coarse field."""
+    fine_samples: int = 128
+    """Extra samples per ray drawn from the coarse weights for the fine field."""
+
+
+class HierarchicalModel(Model):
+    """NeRF's renderer: coarse stratified samples, fine pdf samples, two fields, both trained."""
+
+    def __init__(self, coarse: Field, fine: Field, background: nn.Module, aabb,
+                 config: HierarchicalModelConfig | None = None):
+        super().__init__()
+        self.config = config or HierarchicalModelConfig()
+        self.coarse, self.field, self.background = coarse, fine, background
+        self.register_buffer("aabb", torch.as_tensor(aabb, dtype=torch.float32).clone())
+
+    def _render_edges(self, field: Field, rays: Rays, edges: torch.Tensor, t_far, bg, cond):
+        n, s = edges.shape[0], edges.shape[1] - 1
+        ray_idx = torch.arange(n, device=edges.device).repeat_interleave(s)
+        ts, te = edges[:, :-1].reshape(-1), edges[:, 1:].reshape(-1)
+        t_mid = 0.5 * (ts + te)
+        d = rays.directions[ray_idx]
+        x = rays.origins[ray_idx] + d * t_mid[:, None]
+        sigma, feat = field.density(x, _gather(cond, ray_idx))
+        rgb = field.color(feat, d, _gather(cond, ray_idx))
+        return composite(sigma, rgb, ts, te, ray_idx, n, bg, t_far, rays.z_per_t,
+                         with_median=not self.training)
+
+    def _render_both(self, rays: Rays, generator=None, cond=None):
+        t_near, t_far, _ = ray_aabb(rays.origins, rays.directions, self.aabb)
+        bg = self.background(rays.directions)
+        cfg = self.config
+        edges_c = stratified_samples(t_near, t_far, cfg.coarse_samples, generator, self.training)
+        coarse = self._render_edges(self.coarse, rays, edges_c, t_far, bg, cond)
+        w = coarse.weights.reshape(len(rays), cfg.coarse_samples)
+        t_fine = pdf_samples(edges_c, w, cfg.fine_samples, generator, self.training)
+        edges_f = torch.sort(torch.cat([edges_c, t_fine], -1), -1).values
+        fine = self._render_edges(self.field, rays, edges_f, t_far, bg, cond)
+        return coarse, fine
+
+    def render_rays(self, rays: Rays, generator=None, cond=None) -> RenderOutput:
+        return self._render_both(rays, generator, cond)[1]
+
+    def loss(self, rays, target_rgb, generator=None, cond=None):
+        coarse, fine = self._render_both(rays, generator, cond)
+        return F.mse_loss(coarse.rgb, target_rgb) + F.mse_loss(fine.rgb, target_rgb), fine
+
+
+def _gather(cond: Optional[torch.Tensor], idx: torch.Tensor) -> Optional[torch.Tensor]:
+    """Per-sample conditioning from per-ray conditioning (None stays None)."""
+    return None if cond is None else cond[idx]

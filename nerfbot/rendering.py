@@ -1,0 +1,149 @@
+"""Volume-rendering arithmetic over packed ray samples.
+
+Samples of R rays are stored *packed*: flat arrays of M samples sorted by ray, with
+``ray_indices`` (M,) naming each sample's ray (nerfacc's layout). A dense (R, S) batch is the
+special case ``ray_indices = arange(R).repeat_interleave(S)``.
+
+For a ray with samples i = 0..n-1, densities sigma_i >= 0 (1/m) and intervals
+[t_i, t_i + delta_i] (m):
+
+    tau_i = sigma_i * delta_i                  optical thickness of sample i
+    T_i   = exp(-sum_{j<i} tau_j)              transmittance before it (exclusive cumsum)
+    alpha_i = 1 - exp(-tau_i)
+    w_i   = T_i * alpha_i                      its weight; sum_i w_i = 1 - exp(-sum_i tau_i) <= 1
+
+The cumulative sum runs in float64 whatever the input precision, and the weights never come
+from a product of (1 - alpha) terms, so long rays and alpha = 1 stay exact and differentiable.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+
+#: Opacity below which a ray counts as empty: its depth is the far bound, not 0 / 0.
+EMPTY_OPACITY = 1e-6
+
+#: Largest optical thickness of one sample. exp(-1e4) is 0 in every float type, so clamping there
+#: changes no result, and it keeps the packed float64 cumsum finite (inf - inf would be NaN).
+MAX_THICKNESS = 1e4
+
+
+def ray_starts(ray_indices: torch.Tensor, n_rays: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """First packed index and sample count of every ray: (R,) int64 each (empty rays: count 0)."""
+    counts = torch.bincount(ray_indices, minlength=n_rays) if ray_indices.numel() else \
+        torch.zeros(n_rays, dtype=torch.long, device=ray_indices.device)
+    starts = torch.cumsum(counts, 0) - counts
+    return starts, counts
+
+
+def segment_exclusive_cumsum(values: torch.Tensor, ray_indices: torch.Tensor,
+                             starts: torch.Tensor) -> torch.Tensor:
+    """Exclusive cumulative sum of ``values`` (M,) restarted at each ray, computed in float64."""
+    v = values.double()
+    inclusive = torch.cumsum(v, 0)
+    exclusive = inclusive - v
+    return exclusive - exclusive[starts[ray_indices]] if v.numel() else exclusive
+
+
+def render_weights(sigmas: torch.Tensor, t_starts: torch.Tensor, t_ends: torch.Tensor,
+                   ray_indices: torch.Tensor, n_rays: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Weights and transmittance of packed samples.
+
+    Args:
+        sigmas: (M,) densities >= 0, 1/m (any float dtype; +inf allowed).
+        t_starts, t_ends: (M,) sample interval bounds along the ray, metres.
+        ray_indices: (M,) int64, sorted.
+        n_rays: R.
+    Returns:
+        weights (M,) and transmittance before each sample (M,), in the dtype of ``sigmas``.
+    """
+    starts, _ = ray_starts(ray_indices, n_rays)
+    deltas = (t_ends - t_starts).clamp_min(0.0)
+    # inf * 0 would be NaN: an infinitely dense but zero-length sample has zero thickness
+    tau = torch.where(deltas > 0, sigmas * deltas, torch.zeros_like(sigmas)).clamp_max(MAX_THICKNESS)
+    tau_before = segment_exclusive_cumsum(tau, ray_indices, starts)
+    trans = torch.exp(-tau_before)
+    alpha = -torch.expm1(-tau.double())
+    return (trans * alpha).to(sigmas.dtype), trans.to(sigmas.dtype)
+
+
+def accumulate(weights: torch.Tensor, values: Optional[torch.Tensor], ray_indices: torch.Tensor,
+               n_rays: int) -> torch.Tensor:
+    """Per-ray sums of ``weights * values``: (R,) for values None or (M,), (R, C) for (M, C)."""
+    if values is None:
+        src = weights
+    elif values.dim() == 1:
+        src = weights * values
+    else:
+        src = weights[:, None] * values
+    out = torch.zeros((n_rays,) + tuple(src.shape[1:]), dtype=src.dtype, device=src.device)
+    return out.index_add(0, ray_indices, src)
+
+
+def median_depth(weights: torch.Tensor, t_mid: torch.Tensor, ray_indices: torch.Tensor,
+                 n_rays: int, opacity: torch.Tensor, far: torch.Tensor) -> torch.Tensor:
+    """Distance at which a ray's accumulated weight first reaches half its opacity: (R,).
+
+    Rays whose opacity is below :data:`EMPTY_OPACITY` get ``far``.
+    """
+    starts, _ = ray_starts(ray_indices, n_rays)
+    cum = segment_exclusive_cumsum(weights, ray_indices, starts) + weights.double()
+    crossed = cum >= 0.5 * opacity.double()[ray_indices]
+    big = torch.full((n_rays,), float("inf"), dtype=t_mid.dtype, device=t_mid.device)
+    cand = torch.where(crossed, t_mid.detach(), torch.full_like(t_mid, float("inf")))
+    med = big.scatter_reduce(0, ray_indices, cand, reduce="amin", include_self=True)
+    return torch.where((opacity > EMPTY_OPACITY) & torch.isfinite(med), med, far)
+
+
+@dataclass
+class RenderOutput:
+    """What rendering R rays returns.
+
+    Attributes:
+        rgb: (R, 3) colour composited over the background.
+        opacity: (R,) accumulated weight sum_i w_i in [0, 1].
+        depth: (R,) expected ray distance sum_i w_i t_i / opacity, metres; ``far`` for empty rays.
+        z_depth: (R,) the same as z-depth (along the optical axis), metres.
+        median_depth: (R,) median ray distance (see :func:`median_depth`), metres.
+        weights: (M,) per-sample weights (packed), for losses and depth queries.
+        num_samples: M.
+    """
+
+    rgb: torch.Tensor
+    opacity: torch.Tensor
+    depth: torch.Tensor
+    z_depth: torch.Tensor
+    median_depth: torch.Tensor
+    weights: torch.Tensor
+    num_samples: int
+
+
+def composite(sigmas: torch.Tensor, rgbs: torch.Tensor, t_starts: torch.Tensor,
+              t_ends: torch.Tensor, ray_indices: torch.Tensor, n_rays: int,
+              background: torch.Tensor, far: torch.Tensor, z_per_t: torch.Tensor,
+              with_median: bool = True) -> RenderOutput:
+    """Volume-render packed samples.
+
+    Args:
+        sigmas: (M,) densities; rgbs: (M, 3) colours in [0, 1].
+        t_starts, t_ends: (M,) metres; ray_indices: (M,) sorted int64.
+        background: (R, 3) or (3,) colour behind each ray.
+        far: (R,) the depth reported for empty rays (finite), metres.
+        z_per_t: (R,) cosine between ray and optical axis (z-depth = t * z_per_t).
+    """
+    weights, _ = render_weights(sigmas, t_starts, t_ends, ray_indices, n_rays)
+    t_mid = 0.5 * (t_starts + t_ends)
+    opacity = accumulate(weights, None, ray_indices, n_rays)
+    rgb = accumulate(weights, rgbs, ray_indices, n_rays)
+    rgb = rgb + (1.0 - opacity)[:, None] * background
+    depth_sum = accumulate(weights, t_mid, ray_indices, n_rays)
+    empty = opacity <= EMPTY_OPACITY
+    depth = torch.where(empty, far.to(depth_sum.dtype),
+                        depth_sum / opacity.clamp_min(EMPTY_OPACITY))
+    med = median_depth(weights.detach(), t_mid, ray_indices, n_rays, opacity.detach(), far) \
+        if with_median else depth.detach()
+    return RenderOutput(rgb=rgb, opacity=opacity, depth=depth, z_depth=depth * z_per_t,
+                        median_depth=med, weights=weights, num_samples=int(sigmas.shape[0]))

@@ -1,0 +1,226 @@
+"""Where to put samples along rays: box clipping, stratified and hierarchical (pdf) sampling,
+and occupancy-grid marching with packed outputs."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from nerfbot.kernels import marching as _mk
+
+
+def ray_aabb(origins: torch.Tensor, directions: torch.Tensor, aabb: torch.Tensor,
+             near: float = 0.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Slab intersection of rays with an axis-aligned box.
+
+    Args:
+        origins, directions: (R, 3); aabb: (2, 3) min / max corners, metres.
+        near: rays start no closer than this.
+    Returns:
+        t_near, t_far (R,) and hit (R,) bool. Rays that miss get t_near = t_far = near.
+    """
+    safe = torch.where(directions.abs() < 1e-12, torch.full_like(directions, 1e-12), directions)
+    inv = 1.0 / safe
+    t0 = (aabb[0] - origins) * inv
+    t1 = (aabb[1] - origins) * inv
+    t_near = torch.minimum(t0, t1).amax(-1).clamp_min(near)
+    t_far = torch.maximum(t0, t1).amin(-1)
+    hit = t_far > t_near
+    t_near = torch.where(hit, t_near, torch.full_like(t_near, near))
+    t_far = torch.where(hit, t_far, t_near)
+    return t_near, t_far, hit
+
+
+def stratified_samples(t_near: torch.Tensor, t_far: torch.Tensor, n: int,
+                       generator: torch.Generator | None = None, jitter: bool = True) -> torch.Tensor:
+    """``n + 1`` interval edges per ray (R, n + 1) between near and far, one uniform sample per bin.
+
+    With ``jitter`` every inner edge moves randomly within its bin (NeRF's stratified sampling);
+    the outer edges stay at near and far.
+    """
+    u = torch.linspace(0.0, 1.0, n + 1, device=t_near.device)
+    edges = t_near[:, None] + (t_far - t_near)[:, None] * u
+    if jitter and n > 1:
+        mids = 0.5 * (edges[:, 1:] + edges[:, :-1])
+        lo = torch.cat([edges[:, :1], mids], -1)
+        hi = torch.cat([mids, edges[:, -1:]], -1)
+        r = torch.rand(edges.shape, generator=generator, device=t_near.device)
+        edges = lo + (hi - lo) * r
+        edges[:, 0], edges[:, -1] = t_near, t_far
+        edges = edges.sort(-1).values
+    return edges
+
+
+def pdf_samples(edges: torch.Tensor, weights: torch.Tensor, n: int,
+                generator: torch.Generator | None = None, jitter: bool = True) -> torch.Tensor:
+    """Hierarchical sampling: ``n`` distances (R, n) drawn from the piecewise-constant pdf given
+    by ``weights`` (R, S) on the bins between ``edges`` (R, S + 1).
+
+    Rays whose weights are all zero get a uniform pdf (a small constant pads every bin), and the
+    inverse CDF never divides by zero.
+    """
+    w = weights.detach() + 1e-5
+    pdf = w / w.sum(-1, keepdim=True)
+    cdf = torch.cat([torch.zeros_like(pdf[:, :1]), torch.cumsum(pdf, -1)], -1).clamp_max(1.0)
+    if jitter:
+        u = torch.rand(pdf.shape[0], n, generator=generator, device=pdf.device)
+    else:
+        u = torch.linspace(0.0, 1.0, n + 2, device=pdf.device)[1:-1].expand(pdf.shape[0], n)
+    u = u.contiguous()
+    idx = torch.searchsorted(cdf, u, right=True).clamp(1, cdf.shape[-1] - 1)
+    c0, c1 = cdf.gather(-1, idx - 1), cdf.gather(-1, idx)
+    e0, e1 = edges.gather(-1, idx - 1), edges.gather(-1, idx)
+    frac = torch.nan_to_num((u - c0) / (c1 - c0).clamp_min(1e-12), 0.0).clamp(0.0, 1.0)
+    return (e0 + frac * (e1 - e0)).detach()
+
+
+@dataclass
+class PackedSamples:
+    """Samples of R rays, packed (sorted by ray).
+
+    Attributes:
+        ray_indices: (M,) int64; t_starts, t_ends: (M,) float32 metres;
+        t_stop: (R,) where each ray's marching stopped (to resume from there).
+    """
+
+    ray_indices: torch.Tensor
+    t_starts: torch.Tensor
+    t_ends: torch.Tensor
+    t_stop: torch.Tensor
+
+    def __len__(self) -> int:
+        return int(self.ray_indices.shape[0])
+
+
+class OccupancyGrid(nn.Module):
+    """A G^3 grid over the cube enclosing the scene bounds, marking where density lives.
+
+    Kept as an exponential moving maximum of densities sampled at random points of each cell
+    (Instant-NGP): ``density = max(density * decay, sampled)``; a cell is occupied when its density
+    exceeds ``min(mean density, threshold)``. Cells outside the scene bounds stay empty.
+
+    Args:
+        aabb: (2, 3) scene bounds, metres.
+        resolution: G.
+        threshold: density (1/m) above which a cell is always occupied.
+    """
+
+    def __init__(self, aabb: torch.Tensor, resolution: int = 64, threshold: float = 0.01,
+                 decay: float = 0.95):
+        super().__init__()
+        aabb = torch.as_tensor(aabb, dtype=torch.float32)
+        center = 0.5 * (aabb[0] + aabb[1])
+        half = 0.5 * float((aabb[1] - aabb[0]).max())
+        self.resolution, self.threshold, self.decay = resolution, threshold, decay
+        self.register_buffer("aabb", aabb.clone())
+        self.register_buffer("cube_min", center - half)
+        self.cube_size = 2.0 * half
+        self.register_buffer("density", torch.zeros(resolution ** 3))
+        self.register_buffer("occupied", torch.ones(resolution, resolution, resolution, dtype=torch.uint8))
+        idx = torch.arange(resolution, dtype=torch.float32)
+        centers = torch.stack(torch.meshgrid(idx, idx, idx, indexing="ij"), -1).reshape(-1, 3)
+        self.register_buffer("_cell_index", centers, persistent=False)
+        inside = self._inside_bounds(self.cell_points(torch.full_like(centers, 0.5)))
+        self.register_buffer("inside", inside.reshape(resolution, resolution, resolution), persistent=False)
+        self.occupied &= self.inside.to(torch.uint8)
+
+    @property
+    def cell_size(self) -> float:
+        return self.cube_size / self.resolution
+
+    def _inside_bounds(self, x: torch.Tensor) -> torch.Tensor:
+        pad = 0.5 * self.cell_size
+        return ((x >= self.aabb[0] - pad) & (x <= self.aabb[1] + pad)).all(-1)
+
+    def cell_points(self, offsets: torch.Tensor) -> torch.Tensor:
+        """World points at ``offsets`` (G^3, 3) in [0, 1) within every cell: (G^3, 3)."""
+        return self.cube_min + (self._cell_index + offsets) * self.cell_size
+
+    @torch.no_grad()
+    def update(self, density_fn, step_size: float, generator: torch.Generator | None = None,
+               chunk: int = 1 << 18) -> float:
+        """Re-sample every cell's density with ``density_fn(points (N, 3)) -> (N,)``.
+
+        ``step_size`` (m) turns the threshold into an opacity per marching step, so a cell is
+        occupied when one step through it would be at least ``threshold`` opaque.
+        Returns the fraction of occupied cells.
+        """
+        pts = self.cell_points(torch.rand(self._cell_index.shape, generator=generator))
+        new = torch.cat([density_fn(pts[i:i + chunk]).float() for i in range(0, len(pts), chunk)])
+        new = torch.where(self.inside.reshape(-1), new, torch.zeros_like(new))
+        self.density.copy_(torch.maximum(self.density * self.decay, new))
+        thresh = min(float(self.density[self.inside.reshape(-1)].mean()), self.threshold / step_size)
+        occ = (self.density > thresh).reshape(self.occupied.shape) & self.inside
+        self.occupied.copy_(occ.to(torch.uint8))
+        return float(occ.float().mean() / self.inside.float().mean().clamp_min(1e-12))
+
+    def march(self, origins: torch.Tensor, directions: torch.Tensor, t_begin: torch.Tensor,
+              t_far: torch.Tensor, dt_min: float, dt_max: float, cone: float = 0.0,
+              max_per_ray: int = 1 << 30) -> PackedSamples:
+        """March rays from ``t_begin`` to ``t_far`` (R,) and emit samples in occupied cells.
+
+        Step rule ``dt = clamp(t * cone, dt_min, dt_max)`` (metres). CPU: numba kernels.
+        Other devices: :func:`march_reference`.
+        """
+        if origins.device.type != "cpu":
+            return march_reference(origins, directions, t_begin, t_far, self.occupied,
+                                   self.cube_min, self.cell_size, dt_min, dt_max, cone, max_per_ray)
+        o = origins.detach().float().contiguous().numpy()
+        d = directions.detach().float().contiguous().numpy()
+        tb = t_begin.detach().float().contiguous().numpy()
+        tf = t_far.detach().float().contiguous().numpy()
+        occ = self.occupied.numpy()
+        gmin = self.cube_min.double().numpy()
+        n_rays = o.shape[0]
+        counts = np.empty(n_rays, np.int64)
+        t_stop = np.empty(n_rays, np.float32)
+        args = (o, d, tb, tf, occ, gmin, float(self.cell_size), float(dt_min), float(dt_max),
+                float(cone), int(max_per_ray))
+        _mk.march_count(*args, counts, t_stop)
+        starts = np.cumsum(counts) - counts
+        total = int(counts.sum())
+        ray_idx = np.empty(total, np.int64)
+        ts = np.empty(total, np.float32)
+        te = np.empty(total, np.float32)
+        _mk.march_fill(*args, starts, ray_idx, ts, te)
+        return PackedSamples(torch.from_numpy(ray_idx), torch.from_numpy(ts), torch.from_numpy(te),
+                             torch.from_numpy(t_stop))
+
+
+def march_reference(origins, directions, t_begin, t_far, occupied, cube_min, cell_size, dt_min,
+                    dt_max, cone=0.0, max_per_ray=1 << 30) -> PackedSamples:
+    """Plain-torch twin of the numba marcher (same step rule and cell test, any device).
+
+    Marches all rays in lock-step, one step per iteration, so it is slow for long rays: use it
+    for checks and for devices without the CPU kernels.
+    """
+    g = occupied.shape[0]
+    t = t_begin.double().clone()
+    tf = t_far.double()
+    count = torch.zeros_like(t, dtype=torch.long)
+    rays, starts_l, ends_l = [], [], []
+    alive = t < tf
+    while bool(alive.any()):
+        dt = (t * cone).clamp(dt_min, dt_max)
+        tm = t + 0.5 * dt
+        p = origins.double() + tm[:, None] * directions.double()
+        ijk = torch.floor((p - cube_min.double()) / cell_size).long()
+        valid = ((ijk >= 0) & (ijk < g)).all(-1)
+        ijk = ijk.clamp(0, g - 1)
+        occ = occupied[ijk[:, 0], ijk[:, 1], ijk[:, 2]].bool() & valid
+        emit = alive & occ
+        idx = torch.nonzero(emit).squeeze(-1)
+        rays.append(idx)
+        starts_l.append(t[idx])
+        ends_l.append(torch.minimum(t + dt, tf)[idx])
+        count += emit.long()
+        t = torch.where(alive, t + dt, t)
+        alive = (t < tf) & (count < max_per_ray)
+    ray_idx = torch.cat(rays) if rays else torch.zeros(0, dtype=torch.long)
+    ts = torch.cat(starts_l) if rays else torch.zeros(0, dtype=torch.float64)
+    te = torch.cat(ends_l) if rays else torch.zeros(0, dtype=torch.float64)
+    order = torch.sort(ray_idx, stable=True).indices  # group by ray, keep t order
+    return PackedSamples(ray_idx[order], ts[order].float(), te[order].float(), t.float())

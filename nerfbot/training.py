@@ -1,0 +1,331 @@
+"""The training loop: batches of random pixels, Adam, a decaying learning rate, budgets in
+steps or seconds, atomic checkpoints and exact resume."""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Optional
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from nerfbot.cameras import Rays, pixel_rays
+from nerfbot.data.dataset import Dataset
+from nerfbot.methods import build_model, get_method
+from nerfbot.models import Model
+
+log = logging.getLogger(__name__)
+
+CHECKPOINT = "checkpoint.pt"
+
+
+@dataclass
+class TrainConfig:
+    method: str = "ngp"
+    """Method name from :data:`nerfbot.methods.METHODS`."""
+    max_steps: Optional[int] = None
+    """Stop after this many optimisation steps (None: no step limit)."""
+    max_seconds: Optional[float] = None
+    """Stop when the training loop has run this long (wall clock; loading, compilation,
+    checkpointing and evaluation excluded). At least one of the two budgets must be set."""
+    seed: int = 0
+    """Seeds parameters, batches and jitter. Runs with a step budget are deterministic on CPU."""
+    lr: Optional[float] = None
+    """Adam learning rate (None: the method's default)."""
+    options: dict = field(default_factory=dict)
+    """Method options (field / model config fields), e.g. {"log2_hashmap_size": 19}."""
+    background: Optional[object] = None
+    """"learned", "white", "black" or an RGB triple; None: what the dataset says."""
+    checkpoint_every_seconds: float = 60.0
+    """Write a checkpoint at least this often (training time)."""
+    eval_at_seconds: tuple = ()
+    """Training times (s) at which to pause the clock and record test PSNR (a learning curve)."""
+    eval_at_steps: tuple = ()
+    """Steps at which to record test PSNR."""
+    device: str = "cpu"
+    """torch device; the fast kernels are CPU kernels, other devices use the torch twins."""
+    progress: bool = True
+    """Show a progress bar."""
+
+    def validate(self) -> None:
+        get_method(self.method)
+        if self.max_steps is None and self.max_seconds is None:
+            raise ValueError("set a training budget: max_steps and/or max_seconds")
+        if self.max_steps is not None and self.max_steps < 0:
+            raise ValueError(f"max_steps must be >= 0, got {self.max_steps}")
+        if self.max_seconds is not None and not self.max_seconds >= 0:
+            raise ValueError(f"max_seconds must be >= 0, got {self.max_seconds}")
+
+
+class PixelBank:
+    """All pixels of a set of frames, for drawing random training rays.
+
+    Colours are stored flat as uint8 (P, 3); a pixel index maps to (frame, row, column) through
+    per-frame offsets, so mixed image sizes work and rays are built only for drawn pixels.
+    """
+
+    def __init__(self, dataset: Dataset, indices: list[int], device="cpu"):
+        if not indices:
+            raise ValueError(f"{dataset.root}: the training split is empty")
+        self.device = torch.device(device)
+        self.frames = torch.as_tensor(indices, dtype=torch.long)
+        self.cameras = dataset.cameras(indices).to(device)
+        self.pixels = torch.from_numpy(
+            np.concatenate([dataset.images[i].reshape(-1, 3) for i in indices])).to(device)
+        counts = torch.as_tensor([dataset.images[i].shape[0] * dataset.images[i].shape[1]
+                                  for i in indices], dtype=torch.long)
+        self.offsets = torch.cat([torch.zeros(1, dtype=torch.long), torch.cumsum(counts, 0)]).to(device)
+        self.times = None if dataset.times is None else \
+            torch.as_tensor(dataset.times[indices], dtype=torch.float32, device=device)
+
+    def __len__(self) -> int:
+        return int(self.offsets[-1])
+
+    def sample(self, n: int, generator: torch.Generator) -> tuple[Rays, torch.Tensor, torch.Tensor]:
+        """``n`` random pixels: their rays, colours (n, 3) float32 in [0, 1], frame slots (n,)."""
+        p = torch.randint(len(self), (n,), generator=generator).to(self.device)
+        slot = torch.searchsorted(self.offsets[1:], p, right=True)
+        local = p - self.offsets[slot]
+        w = self.cameras.width[slot]
+        v, u = local // w, local % w
+        cam = self.cameras
+        rays = pixel_rays(cam.c2w[slot], cam.fx[slot], cam.fy[slot], cam.cx[slot], cam.cy[slot],
+                          u.float() + 0.5, v.float() + 0.5)
+        return rays, self.pixels[p].float() / 255.0, slot
+
+
+def learning_rate(base: float, final_factor: float, progress: float) -> float:
+    """Exponential decay from ``base`` to ``base * final_factor`` as progress goes 0 -> 1."""
+    return base * final_factor ** min(max(progress, 0.0), 1.0)
+
+
+def save_atomic(obj, path: Path) -> None:
+    """torch.save to a temporary file in the same folder, then rename over ``path``."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def write_json_atomic(obj, path: Path) -> None:
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    tmp.write_text(json.dumps(obj, indent=2, default=_json_default))
+    os.replace(tmp, path)
+
+
+def _json_default(o):
+    if isinstance(o, (np.ndarray, torch.Tensor)):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def model_spec(config: TrainConfig, dataset: Dataset) -> dict:
+    """Everything needed to rebuild the model without the dataset (stored in checkpoints)."""
+    background = config.background if config.background is not None else dataset.background
+    return {"method": config.method, "aabb": np.asarray(dataset.aabb, float).tolist(),
+            "background": background, "options": dict(config.options), "seed": config.seed}
+
+
+def build_from_spec(spec: dict, device="cpu") -> Model:
+    return build_model(spec["method"], spec["aabb"], spec["background"], spec["options"],
+                       spec["seed"]).to(device)
+
+
+def warm_up_kernels() -> None:
+    """Compile (or load from cache) the numba kernels so compilation never counts as training."""
+    from nerfbot.kernels import hashgrid, marching
+
+    x = np.random.default_rng(0).random((8, 3), dtype=np.float32)
+    res, off = hashgrid.level_layout(2, 4, 2, 4)
+    table = np.zeros((off[-1], 2), np.float32)
+    out = np.empty((2, 8, 2), np.float32)
+    hashgrid.hash_forward(x, table, off, res, out, 1)
+    hashgrid.hash_backward(x, out, off, res, table, 1)
+    occ = np.ones((2, 2, 2), np.uint8)
+    t = np.zeros(8, np.float32)
+    counts, stop = np.empty(8, np.int64), np.empty(8, np.float32)
+    args = (x, x, t, t + 1, occ, np.zeros(3), 0.5, 0.1, 0.1, 0.0, 4)
+    marching.march_count(*args, counts, stop)
+    starts = np.cumsum(counts) - counts
+    m = int(counts.sum())
+    marching.march_fill(*args, starts, np.empty(m, np.int64), np.empty(m, np.float32),
+                        np.empty(m, np.float32))
+
+
+class Trainer:
+    """Trains one model on one dataset into a run folder.
+
+    The run folder holds ``config.json``, ``checkpoint.pt`` (model, optimiser, random state,
+    step and training time; written atomically) and ``curve.json`` (test PSNR over time).
+    """
+
+    def __init__(self, dataset: Dataset, out_dir, config: TrainConfig,
+                 evaluate_fn: Optional[Callable[[Model], dict]] = None):
+        config.validate()
+        self.dataset, self.config = dataset, config
+        self.out = Path(out_dir)
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.method = get_method(config.method)
+        self.spec = model_spec(config, dataset)
+        self.device = torch.device(config.device)
+        torch.manual_seed(config.seed)
+        self.model = build_from_spec(self.spec, self.device)
+        self.lr = config.lr if config.lr is not None else self.method.lr
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=self.lr, betas=(0.9, 0.99),
+                                          eps=self.method.adam_eps)
+        self.bank = PixelBank(dataset, dataset.indices("train"), self.device)
+        self.generator = torch.Generator().manual_seed(config.seed)
+        self.step = 0
+        self.train_seconds = 0.0
+        self.n_rays = self.method.rays_per_batch
+        self.curve: list[dict] = []
+        self.evaluate_fn = evaluate_fn
+
+    # -- state -------------------------------------------------------------------------------
+    def state(self) -> dict:
+        return {"spec": self.spec, "model": self.model.state_dict(),
+                "optimizer": self.optimizer.state_dict(), "step": self.step,
+                "train_seconds": self.train_seconds, "n_rays": self.n_rays,
+                "generator": self.generator.get_state(), "curve": self.curve,
+                "config": asdict(self.config)}
+
+    def save(self) -> Path:
+        path = self.out / CHECKPOINT
+        save_atomic(self.state(), path)
+        write_json_atomic(self.curve, self.out / "curve.json")
+        return path
+
+    def load(self, path: Optional[Path] = None) -> bool:
+        """Restore from ``path`` (default: the run's checkpoint); False if there is none."""
+        path = Path(path) if path else self.out / CHECKPOINT
+        if not path.exists():
+            return False
+        ckpt = torch.load(path, map_location=self.device, weights_only=False)
+        if ckpt["spec"]["method"] != self.config.method:
+            raise ValueError(f"{path}: checkpoint is method {ckpt['spec']['method']!r}, "
+                             f"not {self.config.method!r}")
+        self.model.load_state_dict(ckpt["model"])
+        self.optimizer.load_state_dict(ckpt["optimizer"])
+        self.step, self.train_seconds = ckpt["step"], ckpt["train_seconds"]
+        self.n_rays, self.curve = ckpt["n_rays"], ckpt["curve"]
+        self.generator.set_state(ckpt["generator"])
+        return True
+
+    # -- loop --------------------------------------------------------------------------------
+    def progress(self) -> float:
+        c = self.config
+        p = 0.0
+        if c.max_steps:
+            p = max(p, self.step / c.max_steps)
+        if c.max_seconds:
+            p = max(p, self.train_seconds / c.max_seconds)
+        return p
+
+    def done(self) -> bool:
+        c = self.config
+        return ((c.max_steps is not None and self.step >= c.max_steps)
+                or (c.max_seconds is not None and self.train_seconds >= c.max_seconds))
+
+    def _record(self) -> None:
+        if self.evaluate_fn is None:
+            return
+        self.model.eval()
+        metrics = self.evaluate_fn(self.model)
+        self.model.train()
+        entry = {"step": self.step, "train_seconds": round(self.train_seconds, 3), **metrics}
+        self.curve.append(entry)
+        log.info("eval at %.1fs / step %d: %s", self.train_seconds, self.step, metrics)
+
+    def train(self, on_step: Optional[Callable[["Trainer"], None]] = None) -> dict:
+        """Run until a budget is spent. ``on_step(trainer)`` is called after every step (tests
+        use it to simulate interruptions). On KeyboardInterrupt a checkpoint is written first."""
+        c = self.config
+        warm_up_kernels()
+        write_json_atomic({"train": asdict(c), "data": str(self.dataset.root),
+                           "spec": self.spec}, self.out / "config.json")
+        pending_t = sorted(s for s in c.eval_at_seconds if s > self.train_seconds)
+        pending_s = sorted(s for s in c.eval_at_steps if s > self.step)
+        total = c.max_steps if c.max_steps is not None else None
+        bar = tqdm(total=total, initial=self.step, disable=not c.progress, unit="step",
+                   desc=f"train {c.method}", dynamic_ncols=True)
+        last_ckpt = self.train_seconds
+        last_out = None
+        loss_ema = None
+        self.model.train()
+        try:
+            while not self.done():
+                t0 = time.perf_counter()
+                for group in self.optimizer.param_groups:
+                    group["lr"] = learning_rate(self.lr, self.method.lr_final_factor, self.progress())
+                upkeep = self.model.before_step(self.step, self.generator)
+                self.n_rays = self.model.rays_for_next_batch(last_out, self.n_rays)
+                rays, target, slot = self.bank.sample(self.n_rays, self.generator)
+                cond = None if self.bank.times is None else self.bank.times[slot][:, None]
+                loss, out = self.model.loss(rays, target, self.generator, cond)
+                self.optimizer.zero_grad(set_to_none=True)
+                if not torch.isfinite(loss):
+                    raise FloatingPointError(
+                        f"non-finite training loss at step {self.step}; lower the learning rate "
+                        f"(now {self.optimizer.param_groups[0]['lr']:.2e})")
+                loss.backward()
+                self.optimizer.step()
+                self.step += 1
+                last_out = out
+                self.train_seconds += time.perf_counter() - t0
+                loss_v = float(loss)
+                loss_ema = loss_v if loss_ema is None else 0.9 * loss_ema + 0.1 * loss_v
+                bar.update(1)
+                if self.step % 10 == 0 or self.done():
+                    post = {"loss": f"{loss_ema:.4f}",
+                            "psnr": f"{-10 * math.log10(max(loss_ema, 1e-10)):.2f}",
+                            "rays": self.n_rays,
+                            "spr": f"{out.num_samples / max(self.n_rays, 1):.1f}",
+                            "t": f"{self.train_seconds:.0f}s"}
+                    if "occupied" in upkeep:
+                        post["occ"] = f"{upkeep['occupied']:.3f}"
+                    bar.set_postfix(post, refresh=False)
+                if on_step is not None:
+                    on_step(self)
+                while pending_t and self.train_seconds >= pending_t[0]:
+                    pending_t.pop(0)
+                    self._record()
+                while pending_s and self.step >= pending_s[0]:
+                    pending_s.pop(0)
+                    self._record()
+                if self.train_seconds - last_ckpt >= c.checkpoint_every_seconds:
+                    self.save()
+                    last_ckpt = self.train_seconds
+        except KeyboardInterrupt:
+            bar.close()
+            path = self.save()
+            log.warning("interrupted at step %d; checkpoint %s (resume with --resume)", self.step, path)
+            raise
+        bar.close()
+        self.save()
+        return {"steps": self.step, "train_seconds": self.train_seconds,
+                "steps_per_second": self.step / max(self.train_seconds, 1e-9)}
+
+
+def load_model(run_dir, device="cpu") -> tuple[Model, dict]:
+    """Load a trained model from a run folder; returns (model in eval mode, checkpoint info)."""
+    path = Path(run_dir) / CHECKPOINT
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no checkpoint (is {run_dir} a training run folder?)")
+    ckpt = torch.load(path, map_location=device, weights_only=False)
+    model = build_from_spec(ckpt["spec"], device)
+    model.load_state_dict(ckpt["model"])
+    model.eval()
+    info = {k: ckpt[k] for k in ("spec", "step", "train_seconds", "curve", "config")}
+    return model, info
