@@ -403,6 +403,38 @@ def test_manifest_bounds_padded_and_aabb_override(tmp_path):
         load_dataset(tmp_path, aabb=[[0, 0, 0], [0, 1, 1]])
 
 
+# ----------------------------------------------------------------------------- writer round trip
+
+@pytest.mark.parametrize("fmt", ["nerfstudio", "blender"])
+def test_round_trip_with_project_writers(tmp_path, fmt):
+    from nerfbot.data.writers import open_writer
+
+    fx = 0.5 * W / math.tan(0.4)
+    writer = open_writer(fmt, tmp_path, fx, fx, W / 2, H / 2, W, H)
+    poses = ring_poses(5)
+    depth = np.full((H, W), 1.5, np.float32)
+    depth[0, :] = np.inf
+    seg = np.full((H, W), -1, np.int32)
+    seg[4:8, 4:8] = 7
+    for i, c2w in enumerate(poses):
+        writer.add_frame(frame_image(i), c2w, split="test" if i == 4 else "train", depth=depth,
+                         segmentation=seg, time=i / 4, joints={"hinge": 0.1 * i})
+    manifest = {"bounds": [[-0.2, -0.3, 0.0], [0.4, 0.1, 0.5]], "dynamic": True}
+    writer.finish(manifest)
+    ds = load_dataset(tmp_path)
+    assert ds.format == ("nerfstudio" if fmt == "nerfstudio" else "dnerf")
+    assert ds.indices("train") == [0, 1, 2, 3] and ds.indices("test") == [4]
+    np.testing.assert_array_equal(ds.images[3], frame_image(3))
+    np.testing.assert_allclose(ds.c2w, np.stack(poses), atol=1e-12)
+    np.testing.assert_allclose(ds.intrinsics[0], [fx, fx, W / 2, H / 2], rtol=1e-9)
+    np.testing.assert_array_equal(ds.depths[2], depth)
+    np.testing.assert_array_equal(ds.segmentations[1], seg)
+    np.testing.assert_allclose(ds.times, [0, 0.25, 0.5, 0.75, 1.0])
+    assert ds.joints[4]["hinge"] == pytest.approx(0.4)
+    assert ds.manifest == manifest and ds.aabb_source == "manifest"
+    assert ds.masks == [None] * 5 and ds.background == "learned"
+
+
 # ----------------------------------------------------------------------------- malformed input
 
 @pytest.fixture
@@ -425,11 +457,17 @@ def test_error_missing_dataset(tmp_path):
         load_dataset(tmp_path)
 
 
-def test_error_blender_missing_train_json(tmp_path):
+def test_blender_without_train_file_and_missing_split_files(tmp_path):
     make_blender(tmp_path)
     (tmp_path / "transforms_train.json").unlink()
-    with pytest.raises(DatasetError, match=r"transforms_train\.json: file not found"):
-        load_dataset(tmp_path / "transforms_test.json")
+    ds = load_dataset(tmp_path / "transforms_test.json")
+    assert ds.splits == {"val": [0], "test": [1, 2]}
+    for split in ("val", "test"):
+        (tmp_path / f"transforms_{split}.json").unlink()
+    with pytest.raises(DatasetError, match=r"not a dataset folder"):
+        load_dataset(tmp_path)
+    with pytest.raises(DatasetError, match=r"transforms_val\.json: dataset not found"):
+        load_dataset(tmp_path / "transforms_val.json")
 
 
 def test_error_bad_json(ns):

@@ -5,10 +5,10 @@ Formats:
 - **nerfstudio / instant-ngp**: a folder with ``transforms.json`` (or any other ``.json`` file
   given directly). See :mod:`nerfbot.data.nerfstudio`.
 - **Blender synthetic / D-NeRF**: a folder with ``transforms_train.json`` (and
-  ``transforms_val.json``, ``transforms_test.json`` when present), or one of those files
-  given directly. See :mod:`nerfbot.data.blender`.
+  ``transforms_val.json``, ``transforms_test.json`` when present; a folder with only some of
+  them is read too), or one of those files given directly. See :mod:`nerfbot.data.blender`.
 
-A folder holding both ``transforms.json`` and ``transforms_train.json`` is read as nerfstudio.
+A folder holding both ``transforms.json`` and Blender split files is read as nerfstudio.
 
 Default splits (nerfstudio without ``*_filenames`` lists): frames 0, 8, 16, ... (every 8th,
 starting with the first) are "test", the others "train"; a single-frame dataset is all "train".
@@ -92,10 +92,10 @@ def _parse(path: Path) -> ParsedDataset:
     if path.is_dir():
         if (path / "transforms.json").is_file():
             return parse_nerfstudio(path / "transforms.json")
-        if (path / "transforms_train.json").is_file():
+        if any((path / f"transforms_{s}.json").is_file() for s in ("train", "val", "test")):
             return parse_blender(path)
         raise DatasetError(f"{path}: not a dataset folder: no transforms.json (nerfstudio) or "
-                           "transforms_train.json (Blender / D-NeRF) in it")
+                           "transforms_{train,val,test}.json (Blender / D-NeRF) in it")
     if path.suffix.lower() != ".json":
         raise DatasetError(f"{path}: expected a dataset folder or a transforms .json file")
     if _BLENDER_JSON.fullmatch(path.name):
