@@ -10,8 +10,10 @@ from __future__ import annotations
 import os
 import sys
 
-# Whether mujoco was imported before this module: then MUJOCO_GL set here came too late.
+# Whether mujoco was imported before this module (then a MUJOCO_GL set here came too late),
+# and the MUJOCO_GL it saw.
 _MUJOCO_IMPORTED_FIRST = "mujoco" in sys.modules
+_MUJOCO_GL_AT_IMPORT = os.environ.get("MUJOCO_GL", "")
 
 _HINT = (
     "Try another backend by setting the environment variable before starting Python: "
@@ -52,9 +54,13 @@ def make_renderer(model, height: int, width: int):
     except ValueError:
         raise
     except Exception as err:  # GL errors surface as ImportError, RuntimeError, mujoco.FatalError
-        extra = (" (note: mujoco was imported before sims, so MUJOCO_GL may not have applied)"
-                 if _MUJOCO_IMPORTED_FIRST else "")
+        backend = backend_name()
+        extra = ""
+        if _MUJOCO_IMPORTED_FIRST and _MUJOCO_GL_AT_IMPORT != os.environ.get("MUJOCO_GL", ""):
+            backend = _MUJOCO_GL_AT_IMPORT or "default (glfw)"
+            extra = (" (mujoco was imported before sims, so it kept that backend; import sims "
+                     "first or set MUJOCO_GL before starting Python)")
         raise RuntimeError(
-            f"Could not create a MuJoCo offscreen renderer with backend "
-            f"MUJOCO_GL={backend_name()}{extra}: {type(err).__name__}: {err}. {_HINT}"
+            f"Could not create a MuJoCo offscreen renderer with backend MUJOCO_GL={backend}"
+            f"{extra}: {type(err).__name__}: {err}. {_HINT}"
         ) from err
