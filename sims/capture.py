@@ -151,7 +151,11 @@ def main(argv: Optional[Sequence[str]] = None) -> Path:
 
     parser = argparse.ArgumentParser(prog="python -m sims.capture", description=__doc__.split("\n")[0])
     add_capture_arguments(parser)
-    return run_capture(parser.parse_args(argv))
+    args = parser.parse_args(argv)
+    try:
+        return run_capture(args)
+    except (FileNotFoundError, FileExistsError, ValueError, RuntimeError) as err:
+        parser.exit(2, f"{parser.prog}: error: {err}\n")
 
 
 if __name__ == "__main__":

@@ -73,10 +73,10 @@ def default_rig(scene: str | Path, **overrides) -> RigConfig:
 
 
 def rigs_from_args(args: argparse.Namespace) -> tuple[RigConfig, RigConfig | None]:
-    """(train rig, test rig or None) from parsed capture arguments."""
+    """(train rig, test rig or None) from parsed capture arguments; ValueError if inconsistent."""
     explicit = args.rig == "explicit"
     if explicit and args.poses is None:
-        raise SystemExit("--rig explicit needs --poses FILE")
+        raise ValueError("--rig explicit needs --poses FILE")
     views = args.views if args.views is not None else (0 if explicit else DEFAULT_VIEWS)
     test_views = (args.test_views if args.test_views is not None
                   else (0 if explicit else DEFAULT_TEST_VIEWS))
