@@ -61,8 +61,9 @@ class OccupancyModelConfig:
     """Steps between occupancy-grid updates."""
     grid_threshold: float = 0.01
     """A cell is occupied when one marching step through it is at least this opaque."""
-    render_steps: int = 512
-    """Marching steps along the cube's diagonal: sets the smallest step dt_min."""
+    render_steps: int = 256
+    """Marching steps along the cube's diagonal: sets the smallest step dt_min. 256 measured
+    better than 512 within a CPU time budget (fewer samples per ray, more steps)."""
     cone_angle: float = 0.0
     """Steps grow as t * cone_angle (0: constant steps), clamped to [dt_min, 8 dt_min]."""
     early_stop_transmittance: float = 1e-3
