@@ -61,6 +61,21 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     return c2w
 
 
+def spherical_eye(target, radius: float, azimuth_deg: float, elevation_deg: float) -> np.ndarray:
+    """(3,) camera position at ``radius`` from ``target``, azimuth from +x, elevation from xy."""
+    a, e = math.radians(azimuth_deg), math.radians(elevation_deg)
+    offset = radius * np.array([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
+    return np.asarray(target, dtype=np.float64) + offset
+
+
+def orbit_poses(target, radius: float, elevation_deg: float, count: int,
+                azimuth_offset_deg: float = 0.0) -> np.ndarray:
+    """(count, 4, 4) c2w poses on a ring around ``target``, evenly spaced azimuths, z up."""
+    step = 360.0 / count
+    return np.stack([look_at(spherical_eye(target, radius, azimuth_offset_deg + i * step,
+                                           elevation_deg), target) for i in range(count)])
+
+
 def check_pose(c2w: np.ndarray, where: str, tol: float = 1e-4) -> np.ndarray:
     """Validate one c2w matrix and return it as float64 (4, 4).
 

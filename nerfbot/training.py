@@ -284,7 +284,7 @@ class Trainer:
                 self.step += 1
                 last_out = out
                 self.train_seconds += time.perf_counter() - t0
-                loss_v = float(loss)
+                loss_v = loss.detach().item()
                 loss_ema = loss_v if loss_ema is None else 0.9 * loss_ema + 0.1 * loss_v
                 bar.update(1)
                 if self.step % 10 == 0 or self.done():

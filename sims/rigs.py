@@ -27,7 +27,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from nerfbot.cameras import check_pose, look_at
+from nerfbot.cameras import check_pose, look_at, spherical_eye
 
 RIG_KINDS = ("hemisphere", "orbit", "explicit")
 
@@ -112,13 +112,6 @@ def parse_size(size: int | Sequence[int]) -> tuple[int, int]:
     if len(vals) == 2:
         return vals[0], vals[1]
     raise ValueError(f"size must be N or (W, H), got {size}")
-
-
-def spherical_eye(target, radius: float, azimuth_deg: float, elevation_deg: float) -> np.ndarray:
-    """(3,) camera position at ``radius`` from ``target``, azimuth from +x, elevation from xy."""
-    a, e = math.radians(azimuth_deg), math.radians(elevation_deg)
-    offset = radius * np.array([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
-    return np.asarray(target, dtype=np.float64) + offset
 
 
 def hemisphere_poses(cfg: RigConfig) -> list[np.ndarray]:

@@ -1,0 +1,297 @@
+"""The ``nerfbot`` command: capture, train, eval, render, demo.
+
+Heavy imports happen inside each command so ``nerfbot --help`` stays instant. ``sims`` is
+imported before anything that imports ``mujoco``, so headless machines get ``MUJOCO_GL=egl``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+log = logging.getLogger("nerfbot")
+
+
+# -- helpers ---------------------------------------------------------------------------------
+def _parse_option(text: str) -> tuple[str, object]:
+    if "=" not in text:
+        raise argparse.ArgumentTypeError(f"--option expects key=value, got {text!r}")
+    key, value = text.split("=", 1)
+    try:
+        return key.strip(), json.loads(value)
+    except json.JSONDecodeError:
+        return key.strip(), value
+
+
+def _parse_background(text: str | None):
+    if text is None or text in ("learned", "white", "black"):
+        return text
+    parts = [float(v) for v in text.split(",")]
+    if len(parts) != 3 or not all(0.0 <= p <= 1.0 for p in parts):
+        raise SystemExit(f"--background: expected learned, white, black or R,G,B in [0, 1], got {text!r}")
+    return parts
+
+
+def _floats(text: str) -> tuple[float, ...]:
+    return tuple(float(v) for v in text.split(",") if v.strip())
+
+
+def _load_dataset(path, aabb=None, background=None):
+    from nerfbot.data import load_dataset
+
+    return load_dataset(path, aabb=aabb, background=background)
+
+
+def _run_data_path(run: Path) -> Path | None:
+    cfg = run / "config.json"
+    if cfg.exists():
+        return Path(json.loads(cfg.read_text())["data"])
+    return None
+
+
+# -- commands --------------------------------------------------------------------------------
+def cmd_capture(args) -> int:
+    from sims.cli import run_capture
+
+    run_capture(args)
+    return 0
+
+
+def cmd_train(args) -> int:
+    from nerfbot.evaluation import evaluate
+    from nerfbot.training import CHECKPOINT, TrainConfig, Trainer, write_json_atomic
+
+    if args.max_steps is None and args.max_seconds is None:
+        raise SystemExit("nerfbot train: give a budget, --max-steps N and/or --max-seconds S")
+    out = Path(args.out)
+    if (out / CHECKPOINT).exists() and not args.resume:
+        raise SystemExit(f"{out} already holds a run; pass --resume to continue it, or choose "
+                         "another --out")
+    aabb = None if args.aabb is None else [args.aabb[:3], args.aabb[3:]]
+    background = _parse_background(args.background)
+    ds = _load_dataset(args.data, aabb, background if isinstance(background, list) or
+                       background in ("white", "black") else None)
+    config = TrainConfig(method=args.method, max_steps=args.max_steps,
+                         max_seconds=args.max_seconds, seed=args.seed, lr=args.lr,
+                         options=dict(args.option or []), background=background,
+                         eval_at_seconds=_floats(args.eval_at) if args.eval_at else (),
+                         device=args.device, progress=not args.no_progress)
+
+    def curve_eval(model):
+        return {"psnr": evaluate(model, ds, "test", with_ssim=False)["psnr"]}
+
+    trainer = Trainer(ds, out, config, evaluate_fn=curve_eval if args.eval_at else None)
+    if args.resume and trainer.load():
+        log.info("resumed %s at step %d (%.1f s trained)", out, trainer.step, trainer.train_seconds)
+    summary = trainer.train()
+    metrics = evaluate(trainer.model, ds, "test")
+    metrics.update(method=args.method, num_params=_num_params(trainer.model), **summary)
+    write_json_atomic(metrics, out / "metrics.json")
+    print(json.dumps(metrics, indent=2))
+    return 0
+
+
+def _num_params(model) -> int:
+    return int(sum(p.numel() for p in model.parameters()))
+
+
+def cmd_eval(args) -> int:
+    from nerfbot.evaluation import evaluate
+    from nerfbot.training import load_model
+
+    run = Path(args.run)
+    model, info = load_model(run, args.device)
+    data = Path(args.data) if args.data else _run_data_path(run)
+    if data is None:
+        raise SystemExit(f"{run}: no config.json naming the dataset; pass --data DIR")
+    ds = _load_dataset(data)
+    metrics = evaluate(model, ds, args.split)
+    metrics.update(method=info["spec"]["method"], num_params=_num_params(model),
+                   train_seconds=info["train_seconds"], steps=info["step"], split=args.split,
+                   data=str(data))
+    if args.json:
+        print(json.dumps(metrics))
+    else:
+        for k, v in metrics.items():
+            print(f"{k:>22}: {v}")
+    return 0
+
+
+def _orbit_cameras(run: Path, model, frames: int, size, data: Path | None):
+    """An orbit around the scene, framed like the training cameras when the dataset is known."""
+    import numpy as np
+
+    from nerfbot.cameras import Cameras, focal_from_fov, orbit_poses
+
+    aabb = model.aabb.cpu().numpy()
+    target = 0.5 * (aabb[0] + aabb[1])
+    radius, elevation, fov = 2.0 * float(np.linalg.norm(aabb[1] - aabb[0])), 30.0, 40.0
+    width = height = 128
+    if data is not None and data.exists():
+        ds = _load_dataset(data)
+        idx = ds.indices("train")
+        eyes = ds.c2w[idx, :3, 3]
+        offsets = eyes - target
+        radius = float(np.median(np.linalg.norm(offsets, axis=1)))
+        elevation = float(np.degrees(np.median(np.arcsin(offsets[:, 2] / np.linalg.norm(offsets, axis=1)))))
+        width, height = (int(v) for v in ds.sizes[idx[0]])
+        fov = float(np.degrees(2 * np.arctan(0.5 * height / ds.intrinsics[idx[0], 1])))
+    if size:
+        width, height = (size[0], size[0]) if len(size) == 1 else size[:2]
+    poses = orbit_poses(target, radius, elevation, frames)
+    f = focal_from_fov(fov, height)
+    n = len(poses)
+    return Cameras.from_numpy(poses, np.tile([f, f, width / 2, height / 2], (n, 1)),
+                              np.tile([width, height], (n, 1)))
+
+
+def cmd_render(args) -> int:
+    import numpy as np
+
+    from nerfbot.export import colorize_depth, save_image, to_uint8, write_video
+    from nerfbot.query import render_image
+    from nerfbot.training import load_model
+    from tqdm.auto import tqdm
+
+    run = Path(args.run)
+    model, _ = load_model(run, args.device)
+    data = Path(args.data) if args.data else _run_data_path(run)
+    if args.path == "orbit":
+        cams = _orbit_cameras(run, model, args.frames, args.size, data)
+    else:
+        if data is None:
+            raise SystemExit(f"{run}: no dataset known; pass --data DIR to render its {args.path} views")
+        ds = _load_dataset(data)
+        cams = ds.cameras(ds.indices(args.path))
+    out = Path(args.out)
+    images = (render_image(model, cams, i) for i in range(len(cams)))
+    images = tqdm(images, total=len(cams), desc="render", disable=args.no_progress)
+    if out.suffix.lower() in (".mp4", ".avi"):
+        def frames():
+            for img in images:
+                if args.what == "rgb":
+                    yield to_uint8(img["rgb"])
+                elif args.what == "depth":
+                    yield colorize_depth(img["z_depth"], img["opacity"] > 0.5)
+                else:
+                    yield to_uint8(np.repeat(img["opacity"][..., None], 3, -1))
+        write_video(out, frames(), args.fps)
+    else:
+        out.mkdir(parents=True, exist_ok=True)
+        for i, img in enumerate(images):
+            save_image(out / f"rgb_{i:04d}.png", img["rgb"])
+            save_image(out / f"depth_{i:04d}.png", colorize_depth(img["z_depth"], img["opacity"] > 0.5))
+            save_image(out / f"opacity_{i:04d}.png", np.repeat(img["opacity"][..., None], 3, -1))
+            np.save(out / f"depth_{i:04d}.npy", img["z_depth"].astype(np.float32))
+    print(f"wrote {len(cams)} {args.path} views to {out}")
+    return 0
+
+
+def cmd_demo(args) -> int:
+    from nerfbot.demo import run_demo
+
+    metrics = run_demo(Path(args.out), seconds=args.seconds, size=args.size, views=args.views,
+                       test_views=args.test_views, seed=args.seed, progress=not args.no_progress)
+    print(json.dumps(metrics, indent=2))
+    return 0
+
+
+# -- parser ----------------------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    from nerfbot.methods import METHODS
+
+    parser = argparse.ArgumentParser(prog="nerfbot", description=__doc__.splitlines()[0])
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("capture", help="render a MuJoCo scene into a posed-image dataset")
+    from sims.cli import add_capture_arguments
+
+    add_capture_arguments(p)
+    p.set_defaults(func=cmd_capture)
+
+    p = sub.add_parser("train", help="train a radiance field on a dataset")
+    p.add_argument("--data", required=True, type=Path, help="dataset folder or transforms JSON")
+    p.add_argument("--method", default="ngp", choices=sorted(METHODS),
+                   help="; ".join(f"{k}: {v.description}" for k, v in METHODS.items()))
+    p.add_argument("--out", required=True, type=Path, help="run folder")
+    p.add_argument("--max-steps", type=int, default=None, help="step budget")
+    p.add_argument("--max-seconds", type=float, default=None,
+                   help="training-loop time budget in seconds (loading and evaluation excluded)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--lr", type=float, default=None, help="learning rate (default: the method's)")
+    p.add_argument("--resume", action="store_true", help="continue the run in --out")
+    p.add_argument("--aabb", type=float, nargs=6, default=None,
+                   metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
+                   help="scene bounds in metres (overrides the manifest and the camera estimate)")
+    p.add_argument("--background", default=None,
+                   help="learned | white | black | R,G,B (default: learned for RGB captures, "
+                        "the compositing colour for RGBA ones)")
+    p.add_argument("--option", action="append", type=_parse_option, metavar="KEY=VALUE",
+                   help="method option, e.g. log2_hashmap_size=19 (repeatable)")
+    p.add_argument("--eval-at", default=None, metavar="S1,S2,...",
+                   help="record test PSNR at these training times (s), e.g. 30,60,120,180")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser("eval", help="evaluate a run on a dataset split")
+    p.add_argument("run", type=Path)
+    p.add_argument("--data", type=Path, default=None,
+                   help="dataset folder (default: the one the run was trained on)")
+    p.add_argument("--split", default="test")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--device", default="cpu")
+    p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser("render", help="render views of a run: a video or images")
+    p.add_argument("run", type=Path)
+    p.add_argument("--path", default="orbit", choices=("orbit", "test", "train"))
+    p.add_argument("--out", required=True, type=Path,
+                   help="video file (.mp4/.avi) or a folder for rgb/depth/opacity images")
+    p.add_argument("--what", default="rgb", choices=("rgb", "depth", "opacity"),
+                   help="what a video shows")
+    p.add_argument("--frames", type=int, default=60, help="orbit frames")
+    p.add_argument("--fps", type=float, default=24.0)
+    p.add_argument("--size", type=int, nargs="+", default=None, metavar="N",
+                   help="orbit image size N or W H (default: the training size)")
+    p.add_argument("--data", type=Path, default=None)
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser("demo", help="capture the tabletop, train ngp, evaluate, write renders")
+    p.add_argument("--out", type=Path, default=Path("nerfbot-demo"))
+    p.add_argument("--seconds", type=float, default=60.0, help="training budget (s)")
+    p.add_argument("--size", type=int, default=128)
+    p.add_argument("--views", type=int, default=60)
+    p.add_argument("--test-views", type=int, default=10)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=cmd_demo)
+    return parser
+
+
+def main(argv=None) -> int:
+    import sims  # noqa: F401  (sets MUJOCO_GL before anything imports mujoco)
+
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="%(levelname)s %(name)s: %(message)s")
+    from nerfbot.data.errors import DatasetError
+
+    try:
+        return args.func(args)
+    except (DatasetError, FileNotFoundError, FileExistsError) as exc:
+        print(f"nerfbot {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"nerfbot {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,71 @@
+"""``nerfbot demo``: the whole story on the built-in tabletop, in one folder.
+
+capture (MuJoCo) -> train ngp within a time budget -> evaluate -> renders, a depth map, a
+comparison sheet (ground truth | render | depth | error) and metrics.json.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+def run_demo(out: Path, seconds: float = 60.0, size: int = 128, views: int = 60,
+             test_views: int = 10, seed: int = 0, progress: bool = True) -> dict:
+    """Run the demo into ``out``; returns the metrics dict (also written to metrics.json)."""
+    import sims  # noqa: F401  (MUJOCO_GL before mujoco)
+    from sims.capture import capture
+    from sims.cli import default_rig
+    from sims.rigs import make_test_rig
+
+    from nerfbot.data import load_dataset
+    from nerfbot.evaluation import depth_valid_mask, evaluate
+    from nerfbot.export import colorize_depth, comparison_sheet, save_image
+    from nerfbot.query import render_image
+    from nerfbot.training import TrainConfig, Trainer, write_json_atomic
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    data_dir = out / "data"
+    rig = default_rig("tabletop", count=views, width=size, height=size, seed=seed)
+    log.info("capturing the tabletop: %d train + %d test views at %dx%d", views, test_views, size, size)
+    capture("tabletop", rig, make_test_rig(rig, test_views), data_dir, progress=progress)
+    ds = load_dataset(data_dir)
+
+    checkpoints = tuple(s for s in (15, 30, 60, 120, 180, 300) if s < seconds) + (seconds,)
+    config = TrainConfig(method="ngp", max_seconds=seconds, seed=seed, progress=progress,
+                         eval_at_seconds=checkpoints)
+    trainer = Trainer(ds, out / "run", config, evaluate_fn=lambda m: {
+        "psnr": evaluate(m, ds, "test", with_ssim=False)["psnr"]})
+    summary = trainer.train()
+
+    metrics = evaluate(trainer.model, ds, "test")
+    metrics.update(method="ngp", num_params=int(sum(p.numel() for p in trainer.model.parameters())),
+                   curve=trainer.curve, **summary)
+    write_json_atomic(metrics, out / "metrics.json")
+
+    test = ds.indices("test")
+    cams = ds.cameras(test)
+    rows = []
+    for slot, i in enumerate(test):
+        img = render_image(trainer.model, cams, slot)
+        save_image(out / "renders" / f"test_{slot:02d}.png", img["rgb"])
+        if slot < 4:
+            rows.append({"gt": ds.image_float(i), "rgb": img["rgb"], "depth": img["z_depth"],
+                         "depth_valid": img["opacity"] > 0.5})
+        if slot == 0:
+            valid = depth_valid_mask(ds, i)
+            save_image(out / "depth.png", colorize_depth(img["z_depth"], img["opacity"] > 0.5))
+            np.save(out / "depth.npy", img["z_depth"].astype(np.float32))
+            if valid is not None:
+                save_image(out / "depth_gt.png", colorize_depth(ds.depths[i], valid))
+    save_image(out / "sheet.png", comparison_sheet(rows))
+    log.info("demo written to %s: metrics.json, sheet.png, depth.png, renders/", out)
+    return {k: v for k, v in metrics.items() if k != "curve"} | {
+        "curve": [{"train_seconds": c["train_seconds"], "psnr": round(c["psnr"], 2)}
+                  for c in trainer.curve]}
