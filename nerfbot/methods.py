@@ -26,7 +26,6 @@ class MethodSpec:
         build: (aabb (2, 3), background spec, options dict, seed) -> Model.
         lr: Adam learning rate.
         adam_eps: Adam epsilon (tiny for hash tables, as in Instant-NGP).
-        rays_per_batch: rays of the first training batch (occupancy models adapt it).
         lr_final_factor: the learning rate decays exponentially to lr * this at the end of the
             budget.
         description: one line for ``nerfbot train --help``.
@@ -36,7 +35,6 @@ class MethodSpec:
     build: Callable[..., Model]
     lr: float
     adam_eps: float
-    rays_per_batch: int
     lr_final_factor: float
     description: str
     configs: tuple = ()
@@ -62,12 +60,10 @@ def _build_nerf(aabb, background, options, seed) -> Model:
 
 
 METHODS: dict[str, MethodSpec] = {
-    "ngp": MethodSpec(_build_ngp, lr=1e-2, adam_eps=1e-15, rays_per_batch=4096,
-                      lr_final_factor=0.1,
+    "ngp": MethodSpec(_build_ngp, lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
                       description="Instant-NGP hash grid + occupancy-grid marching (fast default)",
                       configs=(NGPFieldConfig, OccupancyModelConfig)),
-    "nerf": MethodSpec(_build_nerf, lr=5e-4, adam_eps=1e-8, rays_per_batch=1024,
-                       lr_final_factor=0.1,
+    "nerf": MethodSpec(_build_nerf, lr=5e-4, adam_eps=1e-8, lr_final_factor=0.1,
                        description="vanilla NeRF, positional encoding, coarse + fine (reference)",
                        configs=(NeRFFieldConfig, HierarchicalModelConfig)),
 }

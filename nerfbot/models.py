@@ -48,9 +48,10 @@ class Model(nn.Module, metaclass=abc.ABCMeta):
         """Upkeep before optimisation step ``step`` (e.g. occupancy updates); returns log values."""
         return {}
 
-    def rays_for_next_batch(self, last: Optional[RenderOutput], n_rays: int) -> int:
-        """How many rays the next training batch should hold."""
-        return n_rays
+    @abc.abstractmethod
+    def rays_for_next_batch(self, last_samples: Optional[int], n_rays: int) -> int:
+        """How many rays the next training batch should hold, given the previous batch's sample
+        count (None before the first batch) and ray count."""
 
 
 @dataclass
@@ -169,11 +170,15 @@ class OccupancyModel(Model):
         frac = self.grid.update(lambda x: self.field.density(x)[0], self.dt_min, generator)
         return {"occupied": frac}
 
-    def rays_for_next_batch(self, last: Optional[RenderOutput], n_rays: int) -> int:
-        if last is None or last.num_samples == 0:
-            return n_rays
-        want = n_rays * self.config.samples_per_batch / max(last.num_samples, 1)
-        return int(min(max(0.5 * n_rays, min(want, 2.0 * n_rays)), 1 << 16)) or 1
+    def rays_for_next_batch(self, last_samples: Optional[int], n_rays: int) -> int:
+        """Rays that make ``samples_per_batch`` samples at the last batch's samples per ray.
+
+        Before any batch, assume rays cross half the marching steps (the grid starts full)."""
+        target = self.config.samples_per_batch
+        if last_samples is None:
+            return max(64, min(1 << 16, 2 * target // self.config.render_steps))
+        per_ray = max(last_samples, 1) / max(n_rays, 1)
+        return int(max(64, min(1 << 16, target / per_ray)))
 
 
 @dataclass
@@ -182,6 +187,8 @@ class HierarchicalModelConfig:
     """Stratified samples per ray for the coarse field."""
     fine_samples: int = 128
     """Extra samples per ray drawn from the coarse weights for the fine field."""
+    rays_per_batch: int = 1024
+    """Rays per training batch."""
 
 
 class HierarchicalModel(Model):
@@ -220,6 +227,9 @@ class HierarchicalModel(Model):
 
     def render_rays(self, rays: Rays, generator=None, cond=None) -> RenderOutput:
         return self._render_both(rays, generator, cond)[1]
+
+    def rays_for_next_batch(self, last_samples: Optional[int], n_rays: int) -> int:
+        return self.config.rays_per_batch
 
     def loss(self, rays, target_rgb, generator=None, cond=None):
         coarse, fine = self._render_both(rays, generator, cond)

@@ -12,8 +12,9 @@ For a ray with samples i = 0..n-1, densities sigma_i >= 0 (1/m) and intervals
     alpha_i = 1 - exp(-tau_i)
     w_i   = T_i * alpha_i                      its weight; sum_i w_i = 1 - exp(-sum_i tau_i) <= 1
 
-The cumulative sum runs in float64 whatever the input precision, and the weights never come
-from a product of (1 - alpha) terms, so long rays and alpha = 1 stay exact and differentiable.
+The cumulative sum runs in float64 per ray whatever the input precision, and the weights never
+come from a product of (1 - alpha) terms, so long rays and alpha = 1 stay accurate and
+differentiable.
 """
 
 from __future__ import annotations
@@ -39,13 +40,44 @@ def ray_starts(ray_indices: torch.Tensor, n_rays: int) -> tuple[torch.Tensor, to
     return starts, counts
 
 
+class _SegmentScan(torch.autograd.Function):
+    """Per-ray exclusive cumsum in float64 (numba); its gradient is the reverse scan."""
+
+    @staticmethod
+    def forward(ctx, values, ray_indices):
+        from nerfbot.kernels.scan import segment_exclusive_cumsum as kernel
+
+        idx = ray_indices.contiguous()
+        out = torch.empty_like(values)
+        kernel(values.detach().contiguous().numpy(), idx.numpy(), out.numpy())
+        ctx.save_for_backward(idx)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad):
+        from nerfbot.kernels.scan import segment_reverse_exclusive_cumsum as kernel
+
+        (idx,) = ctx.saved_tensors
+        out = torch.empty_like(grad)
+        kernel(grad.contiguous().numpy(), idx.numpy(), out.numpy())
+        return out, None
+
+
 def segment_exclusive_cumsum(values: torch.Tensor, ray_indices: torch.Tensor,
                              starts: torch.Tensor) -> torch.Tensor:
-    """Exclusive cumulative sum of ``values`` (M,) restarted at each ray, computed in float64."""
+    """Exclusive cumulative sum of ``values`` (M,) restarted at each ray, in float64.
+
+    On CPU a sequential per-ray scan (numba), so each ray's precision is independent of the
+    others; on other devices a global float64 cumsum minus each ray's offset (``starts``: (R,)
+    first packed index of every ray), whose error grows with the thickness packed before a ray.
+    """
     v = values.double()
-    inclusive = torch.cumsum(v, 0)
-    exclusive = inclusive - v
-    return exclusive - exclusive[starts[ray_indices]] if v.numel() else exclusive
+    if not v.numel():
+        return v
+    if v.device.type == "cpu":
+        return _SegmentScan.apply(v, ray_indices)
+    exclusive = torch.cumsum(v, 0) - v
+    return exclusive - exclusive[starts[ray_indices]]
 
 
 def render_weights(sigmas: torch.Tensor, t_starts: torch.Tensor, t_ends: torch.Tensor,

@@ -48,9 +48,8 @@ def stratified_samples(t_near: torch.Tensor, t_far: torch.Tensor, n: int,
         lo = torch.cat([edges[:, :1], mids], -1)
         hi = torch.cat([mids, edges[:, -1:]], -1)
         r = torch.rand(edges.shape, generator=generator, device=t_near.device)
-        edges = lo + (hi - lo) * r
-        edges[:, 0], edges[:, -1] = t_near, t_far
-        edges = edges.sort(-1).values
+        edges = (lo + (hi - lo) * r).sort(-1).values
+    edges[:, 0], edges[:, -1] = t_near, t_far
     return edges
 
 
@@ -131,9 +130,10 @@ class OccupancyGrid(nn.Module):
     def cell_size(self) -> float:
         return self.cube_size / self.resolution
 
-    def _inside_bounds(self, x: torch.Tensor) -> torch.Tensor:
+    def _inside_bounds(self, centers: torch.Tensor) -> torch.Tensor:
+        """Cells (given by their centres) whose interior overlaps the scene bounds."""
         pad = 0.5 * self.cell_size
-        return ((x >= self.aabb[0] - pad) & (x <= self.aabb[1] + pad)).all(-1)
+        return ((centers > self.aabb[0] - pad) & (centers < self.aabb[1] + pad)).all(-1)
 
     def cell_points(self, offsets: torch.Tensor) -> torch.Tensor:
         """World points at ``offsets`` (G^3, 3) in [0, 1) within every cell: (G^3, 3)."""
@@ -202,7 +202,7 @@ def march_reference(origins, directions, t_begin, t_far, occupied, cube_min, cel
     tf = t_far.double()
     count = torch.zeros_like(t, dtype=torch.long)
     rays, starts_l, ends_l = [], [], []
-    alive = t < tf
+    alive = (t < tf) & (count < max_per_ray)
     while bool(alive.any()):
         dt = (t * cone).clamp(dt_min, dt_max)
         tm = t + 0.5 * dt

@@ -145,7 +145,7 @@ def build_from_spec(spec: dict, device="cpu") -> Model:
 
 def warm_up_kernels() -> None:
     """Compile (or load from cache) the numba kernels so compilation never counts as training."""
-    from nerfbot.kernels import hashgrid, marching
+    from nerfbot.kernels import hashgrid, marching, scan
 
     x = np.random.default_rng(0).random((8, 3), dtype=np.float32)
     res, off = hashgrid.level_layout(2, 4, 2, 4)
@@ -162,6 +162,9 @@ def warm_up_kernels() -> None:
     m = int(counts.sum())
     marching.march_fill(*args, starts, np.empty(m, np.int64), np.empty(m, np.float32),
                         np.empty(m, np.float32))
+    v, idx, o = np.ones(4), np.array([0, 0, 1, 1], np.int64), np.empty(4)
+    scan.segment_exclusive_cumsum(v, idx, o)
+    scan.segment_reverse_exclusive_cumsum(v, idx, o)
 
 
 class Trainer:
@@ -189,7 +192,8 @@ class Trainer:
         self.generator = torch.Generator().manual_seed(config.seed)
         self.step = 0
         self.train_seconds = 0.0
-        self.n_rays = self.method.rays_per_batch
+        self.n_rays = self.model.rays_for_next_batch(None, 0)
+        self.last_samples: Optional[int] = None
         self.curve: list[dict] = []
         self.evaluate_fn = evaluate_fn
 
@@ -198,6 +202,7 @@ class Trainer:
         return {"spec": self.spec, "model": self.model.state_dict(),
                 "optimizer": self.optimizer.state_dict(), "step": self.step,
                 "train_seconds": self.train_seconds, "n_rays": self.n_rays,
+                "last_samples": self.last_samples,
                 "generator": self.generator.get_state(), "curve": self.curve,
                 "config": asdict(self.config)}
 
@@ -220,6 +225,7 @@ class Trainer:
         self.optimizer.load_state_dict(ckpt["optimizer"])
         self.step, self.train_seconds = ckpt["step"], ckpt["train_seconds"]
         self.n_rays, self.curve = ckpt["n_rays"], ckpt["curve"]
+        self.last_samples = ckpt["last_samples"]
         self.generator.set_state(ckpt["generator"])
         return True
 
@@ -261,7 +267,6 @@ class Trainer:
         bar = tqdm(total=total, initial=self.step, disable=not c.progress, unit="step",
                    desc=f"train {c.method}", dynamic_ncols=True)
         last_ckpt = self.train_seconds
-        last_out = None
         loss_ema = None
         self.model.train()
         try:
@@ -270,7 +275,7 @@ class Trainer:
                 for group in self.optimizer.param_groups:
                     group["lr"] = learning_rate(self.lr, self.method.lr_final_factor, self.progress())
                 upkeep = self.model.before_step(self.step, self.generator)
-                self.n_rays = self.model.rays_for_next_batch(last_out, self.n_rays)
+                self.n_rays = self.model.rays_for_next_batch(self.last_samples, self.n_rays)
                 rays, target, slot = self.bank.sample(self.n_rays, self.generator)
                 cond = None if self.bank.times is None else self.bank.times[slot][:, None]
                 loss, out = self.model.loss(rays, target, self.generator, cond)
@@ -282,7 +287,7 @@ class Trainer:
                 loss.backward()
                 self.optimizer.step()
                 self.step += 1
-                last_out = out
+                self.last_samples = out.num_samples
                 self.train_seconds += time.perf_counter() - t0
                 loss_v = loss.detach().item()
                 loss_ema = loss_v if loss_ema is None else 0.9 * loss_ema + 0.1 * loss_v

@@ -1,0 +1,145 @@
+"""Training on a real tiny capture: round trip, quality threshold, exact resume, both methods."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from nerfbot.data import load_dataset
+from nerfbot.evaluation import evaluate
+from nerfbot.metrics import psnr
+from nerfbot.training import CHECKPOINT, TrainConfig, Trainer, load_model
+
+# Small batches keep a step cheap on 32x32 images; the quality test trains a fixed step budget.
+TINY_NGP = {"samples_per_batch": 8192, "grid_update_every": 8}
+
+
+def test_capture_round_trip_poses(tiny_capture):
+    """What sims renders is what the reader returns: requested poses to 1e-6."""
+    from sims.rigs import make_test_rig, rig_poses
+
+    folder, rig = tiny_capture
+    ds = load_dataset(folder)
+    expected = np.stack(rig_poses(rig) + rig_poses(make_test_rig(rig, 4)))
+    assert ds.c2w.shape == expected.shape
+    np.testing.assert_allclose(ds.c2w, expected, atol=1e-6)
+    assert ds.indices("train") == list(range(16)) and ds.indices("test") == list(range(16, 20))
+    assert ds.aabb_source == "manifest" and ds.background == "learned"
+
+
+def _mean_colour_psnr(ds) -> float:
+    """PSNR of the trivial predictor: every test pixel = the mean training colour."""
+    mean = np.mean([ds.image_float(i).reshape(-1, 3).mean(0) for i in ds.indices("train")], 0)
+    return float(np.mean([psnr(np.broadcast_to(mean, ds.image_float(i).shape), ds.image_float(i))
+                          for i in ds.indices("test")]))
+
+
+def test_ngp_trains_tiny_capture_to_threshold(tiny_capture, tmp_path):
+    """ngp on 16 views of 32x32 reaches >= 20 dB test PSNR in 120 steps.
+
+    Measured here: ~23.5 dB after 120 steps (test PSNR plateaus near 23.5 dB with only 16 tiny
+    views: unseen test views limit it, training PSNR keeps rising past 28 dB). The trivial
+    mean-colour predictor scores ~11 dB, so 20 dB can only be reached by learning the scene,
+    and the 3.5 dB margin absorbs run-to-run variation across platforms.
+    """
+    ds = load_dataset(tiny_capture[0])
+    cfg = TrainConfig(method="ngp", max_steps=120, seed=0, progress=False, options=TINY_NGP)
+    trainer = Trainer(ds, tmp_path / "run", cfg)
+    trainer.train()
+    metrics = evaluate(trainer.model, ds, "test")
+    baseline = _mean_colour_psnr(ds)
+    assert metrics["psnr"] >= 20.0, metrics
+    assert metrics["psnr"] >= baseline + 8.0, (metrics, baseline)
+    assert metrics["depth_mae_m"] is not None and metrics["depth_mae_m"] < 0.15, metrics
+    # the occupancy grid learned where the scene is: most of the cube is empty
+    assert float(trainer.model.grid.occupied.float().mean()) < 0.5
+    # the run folder reloads to the same renders
+    model, info = load_model(tmp_path / "run")
+    assert info["step"] == 120
+    again = evaluate(model, ds, "test", with_ssim=False)
+    assert again["psnr"] == pytest.approx(metrics["psnr"], abs=1e-4)
+
+
+def _params(model) -> dict:
+    return {k: v.detach().clone() for k, v in model.state_dict().items()}
+
+
+def test_interrupted_training_resumes_exactly(tiny_capture, tmp_path):
+    """Stopping at step 7 (KeyboardInterrupt) and resuming gives bit-identical parameters,
+    optimiser state and occupancy grid to an uninterrupted run of the same 14 steps."""
+    ds = load_dataset(tiny_capture[0])
+    cfg = TrainConfig(method="ngp", max_steps=14, seed=3, progress=False,
+                      options={"samples_per_batch": 4096, "grid_update_every": 4})
+    straight = Trainer(ds, tmp_path / "straight", cfg)
+    straight.train()
+
+    def interrupt(trainer):
+        if trainer.step == 7:
+            raise KeyboardInterrupt
+
+    first = Trainer(ds, tmp_path / "resumed", cfg)
+    with pytest.raises(KeyboardInterrupt):
+        first.train(on_step=interrupt)
+    assert (tmp_path / "resumed" / CHECKPOINT).exists()
+    assert not list((tmp_path / "resumed").glob(".*tmp*")), "no partial checkpoint left behind"
+
+    second = Trainer(ds, tmp_path / "resumed", cfg)
+    assert second.load() and second.step == 7
+    second.train()
+    assert second.step == 14
+    a, b = _params(straight.model), _params(second.model)
+    assert a.keys() == b.keys()
+    for k in a:
+        assert torch.equal(a[k], b[k]), f"{k} differs after resume"
+    sa, sb = straight.optimizer.state_dict()["state"], second.optimizer.state_dict()["state"]
+    for k in sa:
+        assert torch.equal(sa[k]["exp_avg"], sb[k]["exp_avg"])
+
+
+def test_same_seed_same_run_different_seed_different_run(tiny_capture, tmp_path):
+    ds = load_dataset(tiny_capture[0])
+    opts = {"samples_per_batch": 4096}
+    runs = []
+    for name, seed in (("a", 1), ("b", 1), ("c", 2)):
+        t = Trainer(ds, tmp_path / name, TrainConfig(method="ngp", max_steps=5, seed=seed,
+                                                     progress=False, options=opts))
+        t.train()
+        runs.append(_params(t.model))
+    assert all(torch.equal(runs[0][k], runs[1][k]) for k in runs[0])
+    assert not all(torch.equal(runs[0][k], runs[2][k]) for k in runs[0])
+
+
+def test_vanilla_nerf_loss_decreases(tiny_capture, tmp_path):
+    """The reference NeRF (small widths here) learns: on a fixed batch of training rays the MSE
+    falls below 75 % of the untrained model's in 60 steps (measured: 0.114 -> 0.070, 61 %)."""
+    ds = load_dataset(tiny_capture[0])
+    opts = {"width": 64, "color_width": 32, "coarse_samples": 24, "fine_samples": 24,
+            "rays_per_batch": 256}
+    losses = []
+    cfg = TrainConfig(method="nerf", max_steps=60, seed=0, progress=False, options=opts, lr=2e-3)
+    trainer = Trainer(ds, tmp_path / "nerf", cfg)
+    trainer.train(on_step=lambda t: losses.append(None))
+    first = trainer.model
+
+    # re-measure the loss on a fixed batch before and after training
+    fresh = Trainer(ds, tmp_path / "nerf0", cfg).model
+    gen = torch.Generator().manual_seed(123)
+    rays, target, _ = trainer.bank.sample(2048, gen)
+    first.eval(), fresh.eval()
+    with torch.no_grad():
+        after = torch.mean((first.render_rays(rays).rgb - target) ** 2).item()
+        before = torch.mean((fresh.render_rays(rays).rgb - target) ** 2).item()
+    assert len(losses) == 60
+    assert after < 0.75 * before, (before, after)
+
+
+def test_budget_is_required_and_options_are_checked(tiny_capture, tmp_path):
+    ds = load_dataset(tiny_capture[0])
+    with pytest.raises(ValueError, match="budget"):
+        Trainer(ds, tmp_path / "x", TrainConfig(method="ngp"))
+    with pytest.raises(ValueError, match="no option"):
+        Trainer(ds, tmp_path / "y", TrainConfig(method="ngp", max_steps=1,
+                                                options={"not_an_option": 1}))
+    with pytest.raises(ValueError, match="unknown method"):
+        Trainer(ds, tmp_path / "z", TrainConfig(method="nope", max_steps=1))
