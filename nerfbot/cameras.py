@@ -138,6 +138,16 @@ class Cameras:
             height=sz[:, 1].contiguous(),
         )
 
+    @staticmethod
+    def pinhole(c2w, fov_y_deg: float, width: int, height: int) -> "Cameras":
+        """Cameras of square pixels and centred principal point from c2w (4, 4) or (N, 4, 4)
+        poses and a vertical field of view in degrees."""
+        poses = np.asarray(c2w, dtype=np.float64).reshape(-1, 4, 4)
+        f = focal_from_fov(fov_y_deg, height)
+        n = len(poses)
+        return Cameras.from_numpy(poses, np.tile([f, f, width / 2.0, height / 2.0], (n, 1)),
+                                  np.tile([width, height], (n, 1)))
+
     def __getitem__(self, idx) -> "Cameras":
         def pick(t):
             out = t[idx]

@@ -81,7 +81,8 @@ def cmd_train(args) -> int:
                          device=args.device, progress=not args.no_progress)
 
     def curve_eval(model):
-        return {"psnr": evaluate(model, ds, "test", with_ssim=False)["psnr"]}
+        return {"psnr": evaluate(model, ds, "test", max_images=args.eval_images,
+                                 with_ssim=False)["psnr"]}
 
     trainer = Trainer(ds, out, config, evaluate_fn=curve_eval if args.eval_at else None)
     if args.resume and trainer.load():
@@ -120,11 +121,11 @@ def cmd_eval(args) -> int:
     return 0
 
 
-def _orbit_cameras(run: Path, model, frames: int, size, data: Path | None):
+def _orbit_cameras(model, frames: int, size, data: Path | None):
     """An orbit around the scene, framed like the training cameras when the dataset is known."""
     import numpy as np
 
-    from nerfbot.cameras import Cameras, focal_from_fov, orbit_poses
+    from nerfbot.cameras import Cameras, orbit_poses
 
     aabb = model.aabb.cpu().numpy()
     target = 0.5 * (aabb[0] + aabb[1])
@@ -133,19 +134,15 @@ def _orbit_cameras(run: Path, model, frames: int, size, data: Path | None):
     if data is not None and data.exists():
         ds = _load_dataset(data)
         idx = ds.indices("train")
-        eyes = ds.c2w[idx, :3, 3]
-        offsets = eyes - target
-        radius = float(np.median(np.linalg.norm(offsets, axis=1)))
-        elevation = float(np.degrees(np.median(np.arcsin(offsets[:, 2] / np.linalg.norm(offsets, axis=1)))))
+        offsets = ds.c2w[idx, :3, 3] - target
+        dist = np.linalg.norm(offsets, axis=1)
+        radius = float(np.median(dist))
+        elevation = float(np.degrees(np.median(np.arcsin(offsets[:, 2] / dist))))
         width, height = (int(v) for v in ds.sizes[idx[0]])
         fov = float(np.degrees(2 * np.arctan(0.5 * height / ds.intrinsics[idx[0], 1])))
     if size:
         width, height = (size[0], size[0]) if len(size) == 1 else size[:2]
-    poses = orbit_poses(target, radius, elevation, frames)
-    f = focal_from_fov(fov, height)
-    n = len(poses)
-    return Cameras.from_numpy(poses, np.tile([f, f, width / 2, height / 2], (n, 1)),
-                              np.tile([width, height], (n, 1)))
+    return Cameras.pinhole(orbit_poses(target, radius, elevation, frames), fov, width, height)
 
 
 def cmd_render(args) -> int:
@@ -160,7 +157,7 @@ def cmd_render(args) -> int:
     model, _ = load_model(run, args.device)
     data = Path(args.data) if args.data else _run_data_path(run)
     if args.path == "orbit":
-        cams = _orbit_cameras(run, model, args.frames, args.size, data)
+        cams = _orbit_cameras(model, args.frames, args.size, data)
     else:
         if data is None:
             raise SystemExit(f"{run}: no dataset known; pass --data DIR to render its {args.path} views")
@@ -234,6 +231,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="method option, e.g. log2_hashmap_size=19 (repeatable)")
     p.add_argument("--eval-at", default=None, metavar="S1,S2,...",
                    help="record test PSNR at these training times (s), e.g. 30,60,120,180")
+    p.add_argument("--eval-images", type=int, default=None, metavar="N",
+                   help="learning-curve points use the first N test images (default: all)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=cmd_train)

@@ -21,6 +21,7 @@ from torch import nn
 
 from nerfbot.cameras import Rays
 from nerfbot.fields.base import Field
+from nerfbot.losses import distortion_loss
 from nerfbot.rendering import RenderOutput, composite, render_weights
 from nerfbot.sampling import OccupancyGrid, pdf_samples, ray_aabb, stratified_samples
 
@@ -48,6 +49,20 @@ class Model(nn.Module, metaclass=abc.ABCMeta):
         """Upkeep before optimisation step ``step`` (e.g. occupancy updates); returns log values."""
         return {}
 
+    def param_groups(self) -> list[dict]:
+        """Optimiser groups (``params``, ``lr_scale``): the fields' own groups, then every other
+        parameter (background, second field, ...) at scale 1."""
+        groups, seen = [], set()
+        fields = [self.field] + [m for m in self.children() if isinstance(m, Field) and m is not self.field]
+        for f in fields:
+            for g in f.param_groups():
+                groups.append(g)
+                seen.update(id(p) for p in g["params"])
+        rest = [p for p in self.parameters() if id(p) not in seen]
+        if rest:
+            groups.append({"params": rest, "lr_scale": 1.0})
+        return groups
+
     @abc.abstractmethod
     def rays_for_next_batch(self, last_samples: Optional[int], n_rays: int) -> int:
         """How many rays the next training batch should hold, given the previous batch's sample
@@ -60,6 +75,9 @@ class OccupancyModelConfig:
     """G: occupancy cells per axis of the cube enclosing the bounds."""
     grid_update_every: int = 16
     """Steps between occupancy-grid updates."""
+    grid_warmup_steps: int = 32
+    """Updates before this step track densities but keep every cell occupied: pruning on an
+    untrained field removes cells at random, and a pruned cell gets no samples to recover."""
     grid_threshold: float = 0.01
     """A cell is occupied when one marching step through it is at least this opaque."""
     render_steps: int = 256
@@ -76,6 +94,9 @@ class OccupancyModelConfig:
     """Target number of samples per training batch; the ray count adapts to it."""
     inference_round_samples: int = 16
     """Samples marched per ray per round when rendering with early termination."""
+    distortion_weight: float = 0.0
+    """Weight of the distortion loss (mip-NeRF 360), which discourages fog spread along rays;
+    distances are measured in cube diagonals."""
 
 
 class OccupancyModel(Model):
@@ -163,11 +184,21 @@ class OccupancyModel(Model):
         return composite(sigma, rgb, ts, te, gidx, n, self.background(rays.directions), t_far,
                          rays.z_per_t)
 
+    def loss(self, rays, target_rgb, generator=None, cond=None):
+        out = self.render_rays(rays, generator, cond)
+        loss = F.mse_loss(out.rgb, target_rgb)
+        if self.config.distortion_weight > 0:
+            loss = loss + self.config.distortion_weight * distortion_loss(
+                out.weights, out.t_starts, out.t_ends, out.ray_indices, len(rays),
+                self.grid.cube_size * math.sqrt(3.0))
+        return loss, out
+
     # -- upkeep ------------------------------------------------------------------------------
     def before_step(self, step: int, generator=None) -> dict:
         if step == 0 or step % self.config.grid_update_every:
             return {}
-        frac = self.grid.update(lambda x: self.field.density(x)[0], self.dt_min, generator)
+        frac = self.grid.update(lambda x: self.field.density(x)[0], self.dt_min, generator,
+                                prune=step >= self.config.grid_warmup_steps)
         return {"occupied": frac}
 
     def rays_for_next_batch(self, last_samples: Optional[int], n_rays: int) -> int:

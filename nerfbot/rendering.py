@@ -142,6 +142,8 @@ class RenderOutput:
         median_depth: (R,) median ray distance (see :func:`median_depth`), metres.
         weights: (M,) per-sample weights (packed), for losses and depth queries.
         num_samples: M.
+        ray_indices, t_starts, t_ends, sigmas: (M,) the packed samples themselves (sorted by
+            ray), for losses and threshold-depth queries.
     """
 
     rgb: torch.Tensor
@@ -151,6 +153,10 @@ class RenderOutput:
     median_depth: torch.Tensor
     weights: torch.Tensor
     num_samples: int
+    ray_indices: torch.Tensor
+    t_starts: torch.Tensor
+    t_ends: torch.Tensor
+    sigmas: torch.Tensor
 
 
 def composite(sigmas: torch.Tensor, rgbs: torch.Tensor, t_starts: torch.Tensor,
@@ -178,4 +184,5 @@ def composite(sigmas: torch.Tensor, rgbs: torch.Tensor, t_starts: torch.Tensor,
     med = median_depth(weights.detach(), t_mid, ray_indices, n_rays, opacity.detach(), far) \
         if with_median else depth.detach()
     return RenderOutput(rgb=rgb, opacity=opacity, depth=depth, z_depth=depth * z_per_t,
-                        median_depth=med, weights=weights, num_samples=int(sigmas.shape[0]))
+                        median_depth=med, weights=weights, num_samples=int(sigmas.shape[0]),
+                        ray_indices=ray_indices, t_starts=t_starts, t_ends=t_ends, sigmas=sigmas)

@@ -98,13 +98,13 @@ class OccupancyGrid(nn.Module):
     """A G^3 grid over the cube enclosing the scene bounds, marking where density lives.
 
     Kept as an exponential moving maximum of densities sampled at random points of each cell
-    (Instant-NGP): ``density = max(density * decay, sampled)``; a cell is occupied when its density
-    exceeds ``min(mean density, threshold)``. Cells outside the scene bounds stay empty.
+    (Instant-NGP): ``density = max(density * decay, sampled)``; see :meth:`update` for when a
+    cell counts as occupied. Cells outside the scene bounds stay empty.
 
     Args:
         aabb: (2, 3) scene bounds, metres.
         resolution: G.
-        threshold: density (1/m) above which a cell is always occupied.
+        threshold: opacity of one marching step above which a cell is occupied.
     """
 
     def __init__(self, aabb: torch.Tensor, resolution: int = 64, threshold: float = 0.01,
@@ -141,21 +141,32 @@ class OccupancyGrid(nn.Module):
 
     @torch.no_grad()
     def update(self, density_fn, step_size: float, generator: torch.Generator | None = None,
-               chunk: int = 1 << 18) -> float:
+               chunk: int = 1 << 18, prune: bool = True) -> float:
         """Re-sample every cell's density with ``density_fn(points (N, 3)) -> (N,)``.
 
-        ``step_size`` (m) turns the threshold into an opacity per marching step, so a cell is
-        occupied when one step through it would be at least ``threshold`` opaque.
-        Returns the fraction of occupied cells.
+        A cell is occupied when its density exceeds ``min(mean density, threshold / step_size)``
+        (Instant-NGP): one marching step of ``step_size`` (m) through it would be at least
+        ``threshold`` opaque, or it is denser than average while the field is still faint.
+        The relative part matters early: with only the absolute threshold, nothing passes until
+        the first cell crosses it, and then that update prunes almost the whole volume at once.
+        Pruning an *untrained* field this way removes cells at random, so callers pass
+        ``prune=False`` during a warm-up: densities are tracked, every cell inside the bounds
+        stays occupied. An update that would leave no cell occupied keeps the previous occupancy.
+        Returns the fraction of the cells inside the bounds that are occupied.
         """
         pts = self.cell_points(torch.rand(self._cell_index.shape, generator=generator))
         new = torch.cat([density_fn(pts[i:i + chunk]).float() for i in range(0, len(pts), chunk)])
-        new = torch.where(self.inside.reshape(-1), new, torch.zeros_like(new))
+        inside = self.inside.reshape(-1)
+        new = torch.where(inside, new, torch.zeros_like(new))
         self.density.copy_(torch.maximum(self.density * self.decay, new))
-        thresh = min(float(self.density[self.inside.reshape(-1)].mean()), self.threshold / step_size)
-        occ = (self.density > thresh).reshape(self.occupied.shape) & self.inside
-        self.occupied.copy_(occ.to(torch.uint8))
-        return float(occ.float().mean() / self.inside.float().mean().clamp_min(1e-12))
+        if prune:
+            mean = float(self.density[inside].mean()) if bool(inside.any()) else 0.0
+            occ = (self.density > min(mean, self.threshold / step_size)) & inside
+            if bool(occ.any()):
+                self.occupied.copy_(occ.reshape(self.occupied.shape).to(torch.uint8))
+        else:
+            self.occupied.copy_(self.inside.to(torch.uint8))
+        return float(self.occupied.float().sum() / inside.float().sum().clamp_min(1.0))
 
     def march(self, origins: torch.Tensor, directions: torch.Tensor, t_begin: torch.Tensor,
               t_far: torch.Tensor, dt_min: float, dt_max: float, cone: float = 0.0,

@@ -186,7 +186,7 @@ class Trainer:
         torch.manual_seed(config.seed)
         self.model = build_from_spec(self.spec, self.device)
         self.lr = config.lr if config.lr is not None else self.method.lr
-        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=self.lr, betas=(0.9, 0.99),
+        self.optimizer = torch.optim.Adam(self.model.param_groups(), lr=self.lr, betas=(0.9, 0.99),
                                           eps=self.method.adam_eps)
         self.bank = PixelBank(dataset, dataset.indices("train"), self.device)
         self.generator = torch.Generator().manual_seed(config.seed)
@@ -272,8 +272,9 @@ class Trainer:
         try:
             while not self.done():
                 t0 = time.perf_counter()
+                lr = learning_rate(self.lr, self.method.lr_final_factor, self.progress())
                 for group in self.optimizer.param_groups:
-                    group["lr"] = learning_rate(self.lr, self.method.lr_final_factor, self.progress())
+                    group["lr"] = lr * group["lr_scale"]
                 upkeep = self.model.before_step(self.step, self.generator)
                 self.n_rays = self.model.rays_for_next_batch(self.last_samples, self.n_rays)
                 rays, target, slot = self.bank.sample(self.n_rays, self.generator)
@@ -303,11 +304,11 @@ class Trainer:
                     bar.set_postfix(post, refresh=False)
                 if on_step is not None:
                     on_step(self)
-                while pending_t and self.train_seconds >= pending_t[0]:
-                    pending_t.pop(0)
-                    self._record()
-                while pending_s and self.step >= pending_s[0]:
-                    pending_s.pop(0)
+                due = bool(pending_t and self.train_seconds >= pending_t[0]) or \
+                    bool(pending_s and self.step >= pending_s[0])
+                pending_t = [s for s in pending_t if s > self.train_seconds]
+                pending_s = [s for s in pending_s if s > self.step]
+                if due:  # one record even when a slow step passed several requested times
                     self._record()
                 if self.train_seconds - last_ckpt >= c.checkpoint_every_seconds:
                     self.save()

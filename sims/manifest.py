@@ -97,4 +97,23 @@ def scene_manifest(model: mujoco.MjModel, data: mujoco.MjData, name: str, source
         "time_varying": bool(time_varying),
         "specular": bool(specular),
         "geoms": {str(g): geom_name(model, g) for g in range(model.ngeom)},
+        "objects": declared_objects(model),
     }
+
+
+def declared_objects(model: mujoco.MjModel) -> list[str]:
+    """Geom names the MJCF declares as objects (``<custom><text name="nerfbot_objects"
+    data="geom names separated by spaces"/>``), in order; [] when it declares none.
+
+    Raises ValueError naming the unknown geom if the list names a geom the model lacks.
+    """
+    tid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_TEXT, "nerfbot_objects")
+    if tid < 0:
+        return []
+    adr, size = int(model.text_adr[tid]), int(model.text_size[tid])
+    names = bytes(model.text_data[adr:adr + size]).decode().rstrip("\x00").split()
+    for name in names:
+        if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, name) < 0:
+            raise ValueError(f"<custom> text nerfbot_objects names geom {name!r}, "
+                             "which the model does not have")
+    return names

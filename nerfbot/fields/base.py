@@ -52,6 +52,11 @@ class Field(nn.Module, metaclass=abc.ABCMeta):
         sigma, feat = self.density(x, cond)
         return sigma, self.color(feat, d, cond)
 
+    def param_groups(self) -> list[dict]:
+        """Optimiser groups: dicts with ``params`` and an ``lr_scale`` relative to the method's
+        learning rate. Default: one group of everything at scale 1."""
+        return [{"params": list(self.parameters()), "lr_scale": 1.0}]
+
 
 def mlp(in_dim: int, hidden: int, n_hidden_layers: int, out_dim: int) -> nn.Sequential:
     """Plain ReLU MLP: in -> [hidden] * n_hidden_layers -> out (no output activation)."""

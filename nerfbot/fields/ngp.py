@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Optional
 
@@ -33,6 +34,12 @@ class NGPFieldConfig:
     """Spherical-harmonics degree of the view-direction encoding (0 = view-independent)."""
     backend: str = "numba"
     """Hash-encoding implementation: "numba" (fast CPU) or "torch" (reference twin)."""
+    initial_transmittance: float = 0.2
+    """Transmittance of a ray crossing the whole cube at initialisation. Sets a density bias so
+    the scene starts nearly empty and a learned background explains what it can (sky) before
+    density grows; with a fixed bias, a large box starts as fog that learns to fake the sky."""
+    mlp_lr_scale: float = 1.0
+    """Learning rate of the MLPs relative to the hash table's."""
     mlp_precision: str = "fp32"
     """"bf16": the MLPs run under bfloat16 autocast (AMX / AVX-512 BF16 on CPU, tensor cores on
     GPU), weights and Adam state stay float32; "fp32": plain float32. On the 2-core CPU here
@@ -40,7 +47,7 @@ class NGPFieldConfig:
 
 
 class NGPField(Field):
-    """sigma = trunc_exp(MLP_d(hash(x))[0]); rgb = sigmoid(MLP_c(MLP_d(hash(x))[1:], SH(d))).
+    """sigma = trunc_exp(MLP_d(hash(x))[0] + bias); rgb = sigmoid(MLP_c(MLP_d(hash(x))[1:], SH(d))).
 
     Points outside the scene bounds have zero density.
     """
@@ -56,8 +63,24 @@ class NGPField(Field):
         self.color_mlp = mlp(cfg.geo_feat_dim + self.dir_encoding.out_dim, cfg.hidden,
                              cfg.color_layers, 3)
 
+        if not 0.0 < cfg.initial_transmittance < 1.0:
+            raise ValueError(f"initial_transmittance must be in (0, 1), got {cfg.initial_transmittance}")
+        diagonal = math.sqrt(3.0) * float(self.normalize.cube_size)
+        self.density_bias = math.log(-math.log(cfg.initial_transmittance) / diagonal)
         if cfg.mlp_precision not in ("bf16", "fp32"):
             raise ValueError(f"mlp_precision must be 'bf16' or 'fp32', got {cfg.mlp_precision!r}")
+
+    def param_groups(self) -> list[dict]:
+        """The hash table at the method's learning rate, the MLPs at ``mlp_lr_scale`` of it.
+
+        Adam rescales every gradient to a step of about the learning rate. Where density has
+        collapsed (early in a large box, where a transparent field is the best uniform fit to a
+        sky), the colour MLP still gets tiny but consistent gradients, and full-size steps in
+        every layer make its outputs grow multiplicatively until the sigmoid saturates and colour
+        stops learning. A smaller MLP rate keeps that drift slow."""
+        mlps = [p for n, p in self.named_parameters() if not n.startswith("encoding.")]
+        return [{"params": [self.encoding.table], "lr_scale": 1.0},
+                {"params": mlps, "lr_scale": self.config.mlp_lr_scale}]
 
     def _autocast(self, x: torch.Tensor):
         return torch.autocast(x.device.type, dtype=torch.bfloat16,
@@ -68,7 +91,7 @@ class NGPField(Field):
         with self._autocast(x):
             h = self.density_mlp(enc)
         h = h.float()
-        sigma = trunc_exp(h[:, 0] - 1.0)
+        sigma = trunc_exp(h[:, 0] + self.density_bias)
         sigma = torch.where(self.normalize.inside(x), sigma, torch.zeros_like(sigma))
         return sigma, h[:, 1:]
 
