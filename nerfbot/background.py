@@ -19,6 +19,9 @@ class FixedBackground(nn.Module):
     def forward(self, directions: torch.Tensor) -> torch.Tensor:
         return self.rgb.expand(directions.shape[0], 3)
 
+    def init_mean_color(self, rgb: torch.Tensor) -> None:
+        """A fixed colour stays fixed."""
+
 
 class LearnedBackground(nn.Module):
     """Colour as a smooth function of ray direction (sky, distant walls): SH(d) -> MLP -> rgb."""
@@ -30,6 +33,11 @@ class LearnedBackground(nn.Module):
 
     def forward(self, directions: torch.Tensor) -> torch.Tensor:
         return torch.sigmoid(self.net(self.encoding(directions)))
+
+    def init_mean_color(self, rgb: torch.Tensor) -> None:
+        """Start as the uniform colour ``rgb`` (3,) in (0, 1)."""
+        with torch.no_grad():
+            self.net[-1].bias.copy_(torch.logit(rgb.clamp(0.02, 0.98)).to(self.net[-1].bias))
 
 
 def make_background(spec) -> nn.Module:

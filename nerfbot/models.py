@@ -49,6 +49,12 @@ class Model(nn.Module, metaclass=abc.ABCMeta):
         """Upkeep before optimisation step ``step`` (e.g. occupancy updates); returns log values."""
         return {}
 
+    def init_mean_color(self, rgb: torch.Tensor) -> None:
+        """Make every field and the background start at the data's mean colour ``rgb`` (3,)."""
+        for m in self.modules():
+            if m is not self and hasattr(m, "init_mean_color"):
+                m.init_mean_color(rgb)
+
     def param_groups(self) -> list[dict]:
         """Optimiser groups (``params``, ``lr_scale``): the fields' own groups, then every other
         parameter (background, second field, ...) at scale 1."""

@@ -88,6 +88,10 @@ class PixelBank:
     def __len__(self) -> int:
         return int(self.offsets[-1])
 
+    def mean_color(self) -> torch.Tensor:
+        """(3,) mean colour of all pixels, in [0, 1]."""
+        return self.pixels.float().mean(0) / 255.0
+
     def sample(self, n: int, generator: torch.Generator) -> tuple[Rays, torch.Tensor, torch.Tensor]:
         """``n`` random pixels: their rays, colours (n, 3) float32 in [0, 1], frame slots (n,)."""
         p = torch.randint(len(self), (n,), generator=generator).to(self.device)
@@ -189,6 +193,7 @@ class Trainer:
         self.optimizer = torch.optim.Adam(self.model.param_groups(), lr=self.lr, betas=(0.9, 0.99),
                                           eps=self.method.adam_eps)
         self.bank = PixelBank(dataset, dataset.indices("train"), self.device)
+        self.model.init_mean_color(self.bank.mean_color())
         self.generator = torch.Generator().manual_seed(config.seed)
         self.step = 0
         self.train_seconds = 0.0

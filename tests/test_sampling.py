@@ -436,11 +436,16 @@ def test_update_cells_just_outside_face_aligned_bounds_stay_empty():
                            f"{sorted(set(torch.nonzero(bad)[:, 2].tolist()))}")
 
 
-def test_update_with_no_density_empties_the_grid():
+def test_update_never_prunes_to_an_empty_grid():
+    """A field with no density anywhere keeps the previous occupancy (an empty grid would give
+    no samples, hence no gradient, and training could never recover); a later update with
+    structure prunes as usual."""
     grid = OccupancyGrid(torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]), resolution=8)
-    frac = grid.update(lambda x: torch.zeros(x.shape[:1]), step_size=0.01,
-                       generator=torch.Generator().manual_seed(0))
-    assert frac == 0.0 and int(grid.occupied.sum()) == 0
+    gen = torch.Generator().manual_seed(0)
+    frac = grid.update(lambda x: torch.zeros(x.shape[:1]), step_size=0.01, generator=gen)
+    assert frac == 1.0 and int(grid.occupied.sum()) == 8 ** 3
+    frac = grid.update(lambda x: 100.0 * (x[:, 0] < 0.5).float(), step_size=0.01, generator=gen)
+    assert frac == 0.5 and int(grid.occupied[:4].sum()) == 4 * 8 * 8
 
 
 def test_update_threshold_uses_step_opacity():

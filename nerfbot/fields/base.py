@@ -52,6 +52,21 @@ class Field(nn.Module, metaclass=abc.ABCMeta):
         sigma, feat = self.density(x, cond)
         return sigma, self.color(feat, d, cond)
 
+    def init_mean_color(self, rgb: torch.Tensor) -> None:
+        """Start predicting the colour ``rgb`` (3,) in (0, 1) everywhere (before training).
+
+        Default: set the bias of the last layer of :meth:`color_head` to logit(rgb). Starting
+        from the data's mean colour makes the first colour gradients zero-mean across pixels; from
+        grey, they all agree ("brighter" against a sky) and Adam drives the colour MLP into
+        sigmoid saturation before any structure forms."""
+        head = self.color_head()
+        with torch.no_grad():
+            head.bias.copy_(torch.logit(rgb.clamp(0.02, 0.98)).to(head.bias))
+
+    def color_head(self) -> nn.Linear:
+        """The last linear layer of the colour branch (its output goes through a sigmoid)."""
+        raise TypeError(f"{type(self).__name__} has no colour head; override init_mean_color")
+
     def param_groups(self) -> list[dict]:
         """Optimiser groups: dicts with ``params`` and an ``lr_scale`` relative to the method's
         learning rate. Default: one group of everything at scale 1."""

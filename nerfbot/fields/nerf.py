@@ -65,6 +65,9 @@ class NeRFField(Field):
         sigma = torch.where(self.normalize.inside(x), sigma, torch.zeros_like(sigma))
         return sigma, self.feature(h)
 
+    def color_head(self):
+        return self.rgb_head
+
     def color(self, feat: torch.Tensor, d: torch.Tensor, cond: Optional[torch.Tensor] = None):
         h = F.relu(self.branch(torch.cat([feat, self.dir_enc(d)], -1)))
         return torch.sigmoid(self.rgb_head(h))

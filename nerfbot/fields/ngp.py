@@ -70,6 +70,9 @@ class NGPField(Field):
         if cfg.mlp_precision not in ("bf16", "fp32"):
             raise ValueError(f"mlp_precision must be 'bf16' or 'fp32', got {cfg.mlp_precision!r}")
 
+    def color_head(self):
+        return self.color_mlp[-1]
+
     def param_groups(self) -> list[dict]:
         """The hash table at the method's learning rate, the MLPs at ``mlp_lr_scale`` of it.
 
