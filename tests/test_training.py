@@ -143,3 +143,16 @@ def test_budget_is_required_and_options_are_checked(tiny_capture, tmp_path):
                                                 options={"not_an_option": 1}))
     with pytest.raises(ValueError, match="unknown method"):
         Trainer(ds, tmp_path / "z", TrainConfig(method="nope", max_steps=1))
+
+
+def test_untrained_model_starts_at_the_mean_colour(tiny_capture, tmp_path):
+    """Colour heads and the learned background start at the training images' mean colour, so the
+    first gradients are zero-mean across pixels (from grey they all push one way)."""
+    ds = load_dataset(tiny_capture[0])
+    trainer = Trainer(ds, tmp_path / "run", TrainConfig(method="ngp", max_steps=1, progress=False))
+    mean = trainer.bank.mean_color()
+    rays, _, _ = trainer.bank.sample(256, torch.Generator().manual_seed(0))
+    trainer.model.eval()
+    with torch.no_grad():
+        out = trainer.model.render_rays(rays)
+    assert torch.allclose(out.rgb.mean(0), mean, atol=0.02), (out.rgb.mean(0), mean)
