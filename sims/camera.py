@@ -14,6 +14,7 @@ import mujoco
 import numpy as np
 
 from nerfbot.cameras import check_pose, focal_from_fov
+from nerfbot.data.intrinsics import Intrinsics
 from sims.gl import make_renderer
 from sims.scene import CAPTURE_CAMERA
 
@@ -21,22 +22,11 @@ from sims.scene import CAPTURE_CAMERA
 POSE_TOL = 1e-6
 
 
-@dataclass(frozen=True)
-class Intrinsics:
-    """Pinhole intrinsics of the capture camera, pixels (pixel centres at +0.5)."""
-
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-
-    @staticmethod
-    def from_fovy(fovy_deg: float, width: int, height: int) -> "Intrinsics":
-        """MuJoCo's projection: vertical fov ``fovy_deg`` over ``height``, square pixels."""
-        f = focal_from_fov(fovy_deg, height)
-        return Intrinsics(f, f, width / 2.0, height / 2.0, int(width), int(height))
+def intrinsics_from_fovy(fovy_deg: float, width: int, height: int) -> Intrinsics:
+    """MuJoCo's projection: vertical fov ``fovy_deg`` over ``height``, square pixels, centred
+    principal point (pixel centres at +0.5)."""
+    f = focal_from_fov(fovy_deg, height)
+    return Intrinsics(f, f, width / 2.0, height / 2.0, int(width), int(height))
 
 
 @dataclass
@@ -103,7 +93,7 @@ class CaptureCamera:
         if self.cam_id < 0:
             raise ValueError(f"model has no camera '{CAPTURE_CAMERA}'; "
                              "load it with sims.scene.load_capture_model")
-        self.intrinsics = Intrinsics.from_fovy(fovy_deg, width, height)
+        self.intrinsics = intrinsics_from_fovy(fovy_deg, width, height)
         model.cam_fovy[self.cam_id] = fovy_deg
         model.vis.global_.offwidth = max(int(model.vis.global_.offwidth), int(width))
         model.vis.global_.offheight = max(int(model.vis.global_.offheight), int(height))

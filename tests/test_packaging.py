@@ -35,4 +35,6 @@ def test_console_script_and_packages_declared():
     for dep in ("torch", "mujoco", "pycolmap", "open3d", "opencv-contrib-python-headless",
                 "trimesh", "numpy", "tqdm"):
         assert any(d.startswith(dep) for d in project["dependencies"]), dep
-    assert "test" in project["optional-dependencies"]
+    test_extra = project["optional-dependencies"]["test"]
+    for dep in ("pytest", "hypothesis", "scipy", "nbclient", "nbformat", "ipykernel"):
+        assert any(d.startswith(dep) for d in test_extra), dep
