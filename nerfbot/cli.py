@@ -72,8 +72,8 @@ def cmd_train(args) -> int:
                          "another --out")
     aabb = None if args.aabb is None else [args.aabb[:3], args.aabb[3:]]
     background = _parse_background(args.background)
-    ds = _load_dataset(args.data, aabb, background if isinstance(background, list) or
-                       background in ("white", "black") else None)
+    colour = None if background in (None, "learned") else background  # compositing colour
+    ds = _load_dataset(args.data, aabb, colour)
     config = TrainConfig(method=args.method, max_steps=args.max_steps,
                          max_seconds=args.max_seconds, seed=args.seed, lr=args.lr,
                          options=dict(args.option or []), background=background,

@@ -19,12 +19,19 @@ def _brute_force(weights, t0, t1, ray_indices, n_rays, scale):
 
 
 def _packed(seed, n_rays=7, max_len=9):
+    """Random packed samples: weights and disjoint sorted intervals, ray 0 empty."""
     g = torch.Generator().manual_seed(seed)
     counts = torch.randint(0, max_len, (n_rays,), generator=g)
     counts[0] = 0  # an empty ray
     ray_idx = torch.arange(n_rays).repeat_interleave(counts)
-    t0 = torch.cat([torch.cumsum(torch.rand(int(c), generator=g) * 0.1, 0) + 1.0 for c in counts])
-    t1 = t0 + torch.rand(t0.shape, generator=g) * 0.05
+    # disjoint intervals sorted along each ray, as the samplers produce them
+    t0s, t1s = [], []
+    for c in counts:
+        gaps = torch.rand(int(c), generator=g) * 0.1 + 0.01
+        start = 1.0 + torch.cumsum(gaps, 0) - gaps
+        t0s.append(start)
+        t1s.append(start + gaps * (0.2 + 0.8 * torch.rand(int(c), generator=g)))
+    t0, t1 = torch.cat(t0s), torch.cat(t1s)
     w = torch.rand(t0.shape, generator=g, dtype=torch.float64) * 0.3
     return w, t0.double(), t1.double(), ray_idx, n_rays
 
