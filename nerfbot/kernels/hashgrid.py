@@ -27,6 +27,16 @@ PRIME_Z = 805459861
 
 
 @njit(inline="always")
+def _level(res, offsets, lvl):
+    """Cells per axis (int and float32), vertices per axis, first row, rows, dense or hashed."""
+    r = res[lvl]
+    res1 = r + 1
+    off = offsets[lvl]
+    size = offsets[lvl + 1] - off
+    return r, np.float32(r), res1, off, size, res1 * res1 * res1 <= size
+
+
+@njit(inline="always")
 def _cell(x, n, rf, r):
     """Cell index and local coordinates of point ``n`` on a level with ``r`` cells per axis."""
     px = x[n, 0] * rf
@@ -88,12 +98,7 @@ def hash_forward(x, table, offsets, res, out, n_threads):
     n_feat = table.shape[1]
     for tid in prange(n_threads):
         for lvl in range(tid, n_levels, n_threads):
-            r = res[lvl]
-            rf = np.float32(r)
-            res1 = r + 1
-            off = offsets[lvl]
-            size = offsets[lvl + 1] - off
-            dense = res1 * res1 * res1 <= size
+            r, rf, res1, off, size, dense = _level(res, offsets, lvl)
             for n in range(n_points):
                 ix, iy, iz, wx, wy, wz = _cell(x, n, rf, r)
                 rows = _corner_rows(ix, iy, iz, res1, size - 1, dense)
@@ -119,12 +124,7 @@ def hash_backward(x, grad_out, offsets, res, grad_table, n_threads):
     n_feat = grad_table.shape[1]
     for tid in prange(n_threads):
         for lvl in range(tid, n_levels, n_threads):
-            r = res[lvl]
-            rf = np.float32(r)
-            res1 = r + 1
-            off = offsets[lvl]
-            size = offsets[lvl + 1] - off
-            dense = res1 * res1 * res1 <= size
+            r, rf, res1, off, size, dense = _level(res, offsets, lvl)
             for n in range(n_points):
                 ix, iy, iz, wx, wy, wz = _cell(x, n, rf, r)
                 rows = _corner_rows(ix, iy, iz, res1, size - 1, dense)
