@@ -186,3 +186,41 @@ def composite(sigmas: torch.Tensor, rgbs: torch.Tensor, t_starts: torch.Tensor,
     return RenderOutput(rgb=rgb, opacity=opacity, depth=depth, z_depth=depth * z_per_t,
                         median_depth=med, weights=weights, num_samples=int(sigmas.shape[0]),
                         ray_indices=ray_indices, t_starts=t_starts, t_ends=t_ends, sigmas=sigmas)
+
+
+def threshold_depth(sigmas: torch.Tensor, t_starts: torch.Tensor, t_ends: torch.Tensor,
+                    ray_indices: torch.Tensor, n_rays: int, threshold: float
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Dex-NeRF depth: where a ray's density first reaches ``threshold`` (1/m).
+
+    Densities are taken at sample midpoints and interpolated linearly between the last sample
+    below the threshold and the first at or above it. A ray whose first sample already crosses
+    gets that sample's start. Rays that never cross are *invalid* (not the near plane, the
+    pitfall of ``argmax(sigma > m)``).
+
+    Args:
+        sigmas, t_starts, t_ends, ray_indices: (M,) packed samples sorted by ray and distance.
+        n_rays: R. threshold: density m, 1/m.
+    Returns:
+        depth (R,) ray distance in metres (NaN where invalid) and valid (R,) bool.
+    """
+    idx = torch.arange(sigmas.shape[0], device=sigmas.device)
+    crossed = sigmas >= threshold
+    big = torch.full((n_rays,), sigmas.shape[0], dtype=torch.long, device=sigmas.device)
+    first = big.scatter_reduce(0, ray_indices[crossed], idx[crossed], reduce="amin",
+                               include_self=True)
+    valid = first < sigmas.shape[0]
+    depth = torch.full((n_rays,), float("nan"), dtype=t_starts.dtype, device=t_starts.device)
+    if not bool(valid.any()):
+        return depth, valid
+    rays = torch.nonzero(valid).squeeze(-1)
+    i = first[rays]
+    starts, _ = ray_starts(ray_indices, n_rays)
+    has_prev = i > starts[rays]
+    prev = torch.where(has_prev, i - 1, i)
+    t_mid = 0.5 * (t_starts + t_ends)
+    s0, s1 = sigmas[prev].double(), sigmas[i].double()
+    frac = ((threshold - s0) / (s1 - s0).clamp_min(1e-30)).clamp(0.0, 1.0)
+    interp = t_mid[prev].double() + frac * (t_mid[i] - t_mid[prev]).double()
+    depth[rays] = torch.where(has_prev, interp, t_starts[i].double()).to(depth.dtype)
+    return depth, valid

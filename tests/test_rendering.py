@@ -527,3 +527,31 @@ def test_trunc_exp_forward_and_gradient(dtype):
 def test_trunc_exp_gradcheck_in_range():
     x = torch.linspace(-14.0, 14.0, 9, dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(trunc_exp, (x,), eps=1e-6, atol=1e-6, rtol=1e-6)
+
+
+# ----------------------------------------------------------------------------- threshold depth
+
+def test_threshold_depth_slab_no_crossing_and_first_sample():
+    """Ray 0 enters a slab of density 10 at t = 2 (samples every 0.1 m, midpoints 1.95 / 2.05):
+    m = 5 crosses half way, at 2.0. Ray 1 holds only faint density: never crosses, invalid
+    (not the near plane). Ray 2 starts inside the slab: its first sample's start. Ray 3 is empty."""
+    from nerfbot.rendering import threshold_depth
+
+    t0 = torch.arange(10, 30, dtype=torch.float64) * 0.1       # ray 0: 1.0 .. 2.9
+    s0 = torch.where(t0 + 0.05 >= 2.0, 10.0, 0.0).double()
+    t1 = torch.arange(10, 20, dtype=torch.float64) * 0.1       # ray 1: faint
+    s1 = torch.full_like(t1, 4.0)
+    t2 = torch.arange(20, 25, dtype=torch.float64) * 0.1       # ray 2: dense from the start
+    s2 = torch.full_like(t2, 10.0)
+    ts = torch.cat([t0, t1, t2])
+    te = ts + 0.1
+    sig = torch.cat([s0, s1, s2])
+    idx = torch.cat([torch.full((len(t0),), 0), torch.full((len(t1),), 1), torch.full((len(t2),), 2)])
+    depth, valid = threshold_depth(sig, ts, te, idx, 4, 5.0)
+    assert valid.tolist() == [True, False, True, False]
+    assert depth[0].item() == pytest.approx(2.0, abs=1e-12)
+    assert torch.isnan(depth[1]) and torch.isnan(depth[3])
+    assert depth[2].item() == pytest.approx(2.0, abs=1e-12)
+    # a higher threshold than any density: nothing valid, all NaN, no error
+    depth, valid = threshold_depth(sig, ts, te, idx, 4, 100.0)
+    assert not valid.any() and torch.isnan(depth).all()
