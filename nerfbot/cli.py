@@ -62,6 +62,7 @@ def cmd_capture(args) -> int:
 
 def cmd_train(args) -> int:
     from nerfbot.evaluation import evaluate
+    from nerfbot.models import num_params
     from nerfbot.training import CHECKPOINT, TrainConfig, Trainer, write_json_atomic
 
     if args.max_steps is None and args.max_seconds is None:
@@ -89,18 +90,15 @@ def cmd_train(args) -> int:
         log.info("resumed %s at step %d (%.1f s trained)", out, trainer.step, trainer.train_seconds)
     summary = trainer.train()
     metrics = evaluate(trainer.model, ds, "test")
-    metrics.update(method=args.method, num_params=_num_params(trainer.model), **summary)
+    metrics.update(method=args.method, num_params=num_params(trainer.model), **summary)
     write_json_atomic(metrics, out / "metrics.json")
     print(json.dumps(metrics, indent=2))
     return 0
 
 
-def _num_params(model) -> int:
-    return int(sum(p.numel() for p in model.parameters()))
-
-
 def cmd_eval(args) -> int:
     from nerfbot.evaluation import evaluate
+    from nerfbot.models import num_params
     from nerfbot.training import load_model
 
     run = Path(args.run)
@@ -110,7 +108,7 @@ def cmd_eval(args) -> int:
         raise SystemExit(f"{run}: no config.json naming the dataset; pass --data DIR")
     ds = _load_dataset(data)
     metrics = evaluate(model, ds, args.split)
-    metrics.update(method=info["spec"]["method"], num_params=_num_params(model),
+    metrics.update(method=info["spec"]["method"], num_params=num_params(model),
                    train_seconds=info["train_seconds"], steps=info["step"], split=args.split,
                    data=str(data))
     if args.json:

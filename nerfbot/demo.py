@@ -26,6 +26,7 @@ def run_demo(out: Path, seconds: float = 60.0, size: int = 128, views: int = 60,
     from nerfbot.data import load_dataset
     from nerfbot.evaluation import depth_valid_mask, evaluate
     from nerfbot.export import colorize_depth, comparison_sheet, save_image
+    from nerfbot.models import num_params
     from nerfbot.query import render_image
     from nerfbot.training import TrainConfig, Trainer, write_json_atomic
 
@@ -45,7 +46,7 @@ def run_demo(out: Path, seconds: float = 60.0, size: int = 128, views: int = 60,
     summary = trainer.train()
 
     metrics = evaluate(trainer.model, ds, "test")
-    metrics.update(method="ngp", num_params=int(sum(p.numel() for p in trainer.model.parameters())),
+    metrics.update(method="ngp", num_params=num_params(trainer.model),
                    curve=trainer.curve, **summary)
     write_json_atomic(metrics, out / "metrics.json")
 

@@ -139,16 +139,13 @@ class OccupancyModel(Model):
         s = self._march(rays, t_near + jitter * self.dt_min, t_far)
         ray_idx, ts, te = s.ray_indices, s.t_starts, s.t_ends
         n = len(rays)
+        x, d = self._points(rays, s)
         if self.config.train_early_termination and ray_idx.numel():
             with torch.no_grad():
-                x, _ = self._points(rays, s)
                 sigma, _ = self.field.density(x, _gather(cond, ray_idx))
                 _, trans = render_weights(sigma, ts, te, ray_idx, n)
                 keep = trans > 1e-4
-            ray_idx, ts, te = ray_idx[keep], ts[keep], te[keep]
-        t_mid = 0.5 * (ts + te)
-        d = rays.directions[ray_idx]
-        x = rays.origins[ray_idx] + d * t_mid[:, None]
+            ray_idx, ts, te, x, d = ray_idx[keep], ts[keep], te[keep], x[keep], d[keep]
         sigma, feat = self.field.density(x, _gather(cond, ray_idx))
         rgb = self.field.color(feat, d, _gather(cond, ray_idx))
         return composite(sigma, rgb, ts, te, ray_idx, n, self.background(rays.directions),
@@ -271,6 +268,11 @@ class HierarchicalModel(Model):
     def loss(self, rays, target_rgb, generator=None, cond=None):
         coarse, fine = self._render_both(rays, generator, cond)
         return F.mse_loss(coarse.rgb, target_rgb) + F.mse_loss(fine.rgb, target_rgb), fine
+
+
+def num_params(model: nn.Module) -> int:
+    """Number of trainable scalars."""
+    return int(sum(p.numel() for p in model.parameters()))
 
 
 def _gather(cond: Optional[torch.Tensor], idx: torch.Tensor) -> Optional[torch.Tensor]:
