@@ -29,6 +29,37 @@ def _step(t, dt_min, dt_max, cone):
 
 
 @njit(parallel=True, fastmath=False, cache=True, nogil=True)
+def _march(origins, dirs, t_begin, t_far, occ, gmin, cell, dt_min, dt_max, cone, max_per_ray,
+           fill, starts, ray_indices, t_starts, t_ends, counts, t_stop):
+    """Both passes of the marcher: counts (``fill`` False) or writes (``fill`` True) samples."""
+    g = occ.shape[0]
+    inv_cell = 1.0 / cell
+    for r in prange(origins.shape[0]):
+        t = np.float64(t_begin[r])
+        tf = np.float64(t_far[r])
+        n = 0
+        k = starts[r] if fill else 0
+        while t < tf and n < max_per_ray:
+            dt = _step(t, dt_min, dt_max, cone)
+            tm = t + 0.5 * dt
+            if _occupied(origins[r, 0] + tm * dirs[r, 0], origins[r, 1] + tm * dirs[r, 1],
+                         origins[r, 2] + tm * dirs[r, 2], occ, gmin, inv_cell, g):
+                if fill:
+                    ray_indices[k] = r
+                    t_starts[k] = t
+                    t_ends[k] = min(t + dt, tf)
+                    k += 1
+                n += 1
+            t += dt
+        if not fill:
+            counts[r] = n
+            t_stop[r] = t
+
+
+_NO_I64 = np.empty(0, np.int64)
+_NO_F32 = np.empty(0, np.float32)
+
+
 def march_count(origins, dirs, t_begin, t_far, occ, gmin, cell, dt_min, dt_max, cone, max_per_ray,
                 counts, t_stop):
     """Count the samples each ray would emit (first pass).
@@ -43,24 +74,10 @@ def march_count(origins, dirs, t_begin, t_far, occ, gmin, cell, dt_min, dt_max, 
         counts: (R,) int64 output, samples per ray.
         t_stop: (R,) float32 output, where each ray stopped (resume marching from there).
     """
-    g = occ.shape[0]
-    inv_cell = 1.0 / cell
-    for r in prange(origins.shape[0]):
-        t = np.float64(t_begin[r])
-        tf = np.float64(t_far[r])
-        n = 0
-        while t < tf and n < max_per_ray:
-            dt = _step(t, dt_min, dt_max, cone)
-            tm = t + 0.5 * dt
-            if _occupied(origins[r, 0] + tm * dirs[r, 0], origins[r, 1] + tm * dirs[r, 1],
-                         origins[r, 2] + tm * dirs[r, 2], occ, gmin, inv_cell, g):
-                n += 1
-            t += dt
-        counts[r] = n
-        t_stop[r] = t
+    _march(origins, dirs, t_begin, t_far, occ, gmin, cell, dt_min, dt_max, cone, max_per_ray,
+           False, _NO_I64, _NO_I64, _NO_F32, _NO_F32, counts, t_stop)
 
 
-@njit(parallel=True, fastmath=False, cache=True, nogil=True)
 def march_fill(origins, dirs, t_begin, t_far, occ, gmin, cell, dt_min, dt_max, cone, max_per_ray,
                starts, ray_indices, t_starts, t_ends):
     """Write the samples counted by :func:`march_count` (second pass, same arguments).
@@ -70,21 +87,5 @@ def march_fill(origins, dirs, t_begin, t_far, occ, gmin, cell, dt_min, dt_max, c
         ray_indices: (M,) int64 output, the ray of each sample (sorted, contiguous per ray).
         t_starts, t_ends: (M,) float32 output, the sample intervals along the ray.
     """
-    g = occ.shape[0]
-    inv_cell = 1.0 / cell
-    for r in prange(origins.shape[0]):
-        t = np.float64(t_begin[r])
-        tf = np.float64(t_far[r])
-        n = 0
-        k = starts[r]
-        while t < tf and n < max_per_ray:
-            dt = _step(t, dt_min, dt_max, cone)
-            tm = t + 0.5 * dt
-            if _occupied(origins[r, 0] + tm * dirs[r, 0], origins[r, 1] + tm * dirs[r, 1],
-                         origins[r, 2] + tm * dirs[r, 2], occ, gmin, inv_cell, g):
-                ray_indices[k] = r
-                t_starts[k] = t
-                t_ends[k] = min(t + dt, tf)
-                k += 1
-                n += 1
-            t += dt
+    _march(origins, dirs, t_begin, t_far, occ, gmin, cell, dt_min, dt_max, cone, max_per_ray,
+           True, starts, ray_indices, t_starts, t_ends, _NO_I64, _NO_F32)
