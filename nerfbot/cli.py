@@ -96,6 +96,16 @@ def cmd_train(args) -> int:
     return 0
 
 
+def _float_list(text: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}")
+    if not values:
+        raise argparse.ArgumentTypeError("expected at least one number")
+    return values
+
+
 def cmd_eval(args) -> int:
     from nerfbot.evaluation import evaluate
     from nerfbot.models import num_params
@@ -111,6 +121,14 @@ def cmd_eval(args) -> int:
     metrics.update(method=info["spec"]["method"], num_params=num_params(model),
                    train_seconds=info["train_seconds"], steps=info["step"], split=args.split,
                    data=str(data))
+    if args.depth_sweep:
+        from nerfbot.depth_eval import DEFAULT_THRESHOLDS, depth_mode_sweep, plot_threshold_sweep
+
+        sweep = depth_mode_sweep(model, ds, args.split, args.thresholds or DEFAULT_THRESHOLDS,
+                                 progress=not args.json)
+        metrics["depth_sweep"] = sweep.to_dict()
+        if args.plot:
+            plot_threshold_sweep(sweep, args.plot, title=f"{data.name}: {args.split} split")
     if args.json:
         print(json.dumps(metrics))
     else:
@@ -241,6 +259,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="dataset folder (default: the one the run was trained on)")
     p.add_argument("--split", default="test")
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--depth-sweep", action="store_true",
+                   help="also compare expected, median and threshold depth (and the simulated "
+                        "sensor's) per pixel class: transparent / opaque objects / scene")
+    p.add_argument("--thresholds", type=_float_list, default=None, metavar="M1,M2,...",
+                   help="density thresholds of the sweep, 1/m (default 0.5 ... 1000)")
+    p.add_argument("--plot", type=Path, default=None,
+                   help="with --depth-sweep: write the sweep as a PNG plot here")
     p.add_argument("--device", default="cpu")
     p.set_defaults(func=cmd_eval)
 

@@ -147,6 +147,29 @@ class CaptureCamera:
         seg = np.where(is_geom & ~sky, seg_raw[..., 0], -1).astype(np.int32)
         return Frame(pose, rgb, depth, seg)
 
+    def depth_without(self, geom_ids, hidden_group: int = 5) -> np.ndarray:
+        """z-depth (H, W) float32, metres (``inf`` = nothing) of the current view with the geoms
+        ``geom_ids`` hidden: what lies behind them. Call after :meth:`render` or :meth:`place`.
+
+        The geoms are moved to ``hidden_group`` (a geom group the capture options never draw)
+        for this one render and restored afterwards.
+        """
+        ids = np.asarray(list(geom_ids), dtype=np.int64)
+        saved = self.model.geom_group[ids].copy()
+        option = capture_scene_option()
+        option.geomgroup[hidden_group] = 0
+        r = self._renderer
+        try:
+            self.model.geom_group[ids] = hidden_group
+            r.update_scene(self.data, camera=self.cam_id, scene_option=option)
+            r.enable_depth_rendering()
+            depth = r.render().astype(np.float32, copy=True)
+        finally:
+            r.disable_depth_rendering()
+            self.model.geom_group[ids] = saved
+        depth[depth >= np.float32(self.far) * np.float32(1.0 - 1e-5)] = np.inf
+        return depth
+
     def close(self) -> None:
         self._renderer.close()
 

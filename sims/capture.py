@@ -18,6 +18,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Optional, Sequence
 
+import mujoco
 import numpy as np
 from tqdm import tqdm
 
@@ -25,7 +26,8 @@ from nerfbot.data.writers import FORMATS, open_writer
 from sims.camera import CaptureCamera, nearest_rigid
 from sims.manifest import scene_manifest
 from sims.rigs import RigConfig, parse_size, rig_poses
-from sims.scene import builtin_scenes, load_capture_model, resolve_scene
+from sims.sensor import DepthSensorModel
+from sims.scene import builtin_scenes, load_capture_model, parse_generated, resolve_scene
 
 log = logging.getLogger(__name__)
 
@@ -69,14 +71,16 @@ def _warn_view_dependent_lighting(model) -> None:
 
 def _scene_source(scene) -> str:
     text = str(scene)
-    if isinstance(scene, str) and text in builtin_scenes() and "/" not in text:
+    if isinstance(scene, str) and "/" not in text and (
+            text in builtin_scenes() or parse_generated(text) is not None):
         return f"builtin:{text}"
     return str(resolve_scene(scene))
 
 
 def capture(scene: str | Path, rig: RigConfig, test_rig: Optional[RigConfig], out_dir: Path,
             size: Optional[int | Sequence[int]] = None, fmt: str = "nerfstudio",
-            manifest: bool = True, progress: bool = True) -> Path:
+            manifest: bool = True, progress: bool = True,
+            sensor: Optional[DepthSensorModel] = None) -> Path:
     """Render ``rig`` (train split) and ``test_rig`` (test split) views of ``scene`` to ``out_dir``.
 
     Args:
@@ -88,6 +92,8 @@ def capture(scene: str | Path, rig: RigConfig, test_rig: Optional[RigConfig], ou
         fmt: "nerfstudio" (``transforms.json``) or "blender" (``transforms_{split}.json``).
         manifest: write the scene manifest as the top-level ``scene`` object.
         progress: show a progress bar.
+        sensor: also write each view's simulated depth-sensor reading (``sensor_depth``, see
+            :mod:`sims.sensor`); the manifest records the model under ``depth_sensor``.
 
     Returns:
         ``out_dir`` as a Path. Files: RGB PNG (uint8), z-depth ``.npy`` (float32 metres, ``inf``
@@ -116,6 +122,10 @@ def capture(scene: str | Path, rig: RigConfig, test_rig: Optional[RigConfig], ou
     for split, i, pose in views:  # fail before writing anything
         nearest_rigid(pose, f"{split} view {i}")
     meta = scene_manifest(model, data, resolve_scene(scene).stem, _scene_source(scene))
+    transparent_ids = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, name)
+                       for name in meta["transparent_geoms"]]
+    if sensor is not None:
+        meta["depth_sensor"] = sensor.to_dict()
 
     out_dir = Path(out_dir).expanduser().absolute()
     _check_destination(out_dir)
@@ -126,11 +136,16 @@ def capture(scene: str | Path, rig: RigConfig, test_rig: Optional[RigConfig], ou
         with CaptureCamera(model, data, rig.width, rig.height, rig.fov_deg) as cam:
             k = cam.intrinsics
             writer = open_writer(fmt, tmp, k.fx, k.fy, k.cx, k.cy, k.width, k.height)
-            for split, i, pose in tqdm(views, desc=f"capture {meta['name']}", unit="view",
-                                       disable=not progress):
+            bar = tqdm(views, desc=f"capture {meta['name']}", unit="view", disable=not progress)
+            for view_index, (split, i, pose) in enumerate(bar):
                 frame = cam.render(pose, where=f"{split} view {i}")
+                sensor_depth = None
+                if sensor is not None:
+                    behind = cam.depth_without(transparent_ids) if transparent_ids else frame.depth
+                    glass = np.isin(frame.segmentation, transparent_ids)
+                    sensor_depth = sensor.read(behind, glass, view_index=view_index)
                 writer.add_frame(frame.rgb, frame.c2w, split, depth=frame.depth,
-                                 segmentation=frame.segmentation)
+                                 segmentation=frame.segmentation, sensor_depth=sensor_depth)
         writer.finish(meta if manifest else None)
         _check_destination(out_dir)
         _move_into_place(tmp, out_dir)

@@ -16,6 +16,7 @@ from sims.capture import capture
 from sims.manifest import content_bounds, rendered_geoms
 from sims.rigs import RIG_KINDS, RigConfig, make_test_rig, parse_size, scene_rig_defaults
 from sims.scene import load_model
+from sims.sensor import DepthSensorModel
 
 DEFAULT_VIEWS = 60
 DEFAULT_TEST_VIEWS = 10
@@ -54,6 +55,12 @@ def add_capture_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentP
     parser.add_argument("--no-manifest", action="store_true",
                         help="do not write the scene manifest ('scene' object)")
     parser.add_argument("--seed", type=int, default=0, help="random seed of the rig (default 0)")
+    parser.add_argument("--sensor-depth", choices=("auto", "behind", "invalid", "off"),
+                        default="auto",
+                        help="also write a simulated depth sensor's reading (sensor_depth): "
+                             "transparent surfaces return what lies 'behind' them or are "
+                             "'invalid' (no return); 'auto' = 'behind' when the scene has "
+                             "transparent geoms, else off (default auto)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     return parser
 
@@ -91,11 +98,26 @@ def rigs_from_args(args: argparse.Namespace) -> tuple[RigConfig, RigConfig | Non
     return rig, (make_test_rig(rig, test_views) if test_views > 0 else None)
 
 
+def sensor_from_arg(scene, mode: str, seed: int = 0) -> DepthSensorModel | None:
+    """The depth-sensor model of ``--sensor-depth MODE`` (None = no sensor depth)."""
+    if mode == "off":
+        return None
+    if mode == "auto":
+        model = load_model(scene)
+        data = mujoco.MjData(model)
+        mujoco.mj_forward(model, data)
+        if not any(g.rgba[3] < 1.0 for g in rendered_geoms(model, data)):
+            return None
+        mode = "behind"
+    return DepthSensorModel(transparent=mode, seed=seed)
+
+
 def run_capture(args: argparse.Namespace) -> Path:
     """Capture the dataset described by ``args``; print where it went; return its folder."""
     rig, test = rigs_from_args(args)
     out = capture(args.scene, rig, test, args.out, fmt=args.format,
-                  manifest=not args.no_manifest, progress=not args.no_progress)
+                  manifest=not args.no_manifest, progress=not args.no_progress,
+                  sensor=sensor_from_arg(args.scene, args.sensor_depth, args.seed))
     n_train, n_test = _count_frames(out, args.format)
     print(f"wrote {n_train + n_test} frames ({n_train} train, {n_test} test) of "
           f"'{args.scene}' at {rig.width}x{rig.height} to {out} ({args.format})")

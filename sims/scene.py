@@ -1,9 +1,13 @@
-"""Find and load MuJoCo scenes: built-in names (``tabletop``) or paths to any MJCF file."""
+"""Find and load MuJoCo scenes: built-in names (``tabletop``), generated scene families
+(``glassware`` or ``glassware:SEED``) or paths to any MJCF file."""
 
 from __future__ import annotations
 
 import importlib.resources
+import os
+import tempfile
 from pathlib import Path
+from typing import Callable
 
 import mujoco  # sims/__init__ has selected the GL backend before this import
 
@@ -11,14 +15,56 @@ import mujoco  # sims/__init__ has selected the GL backend before this import
 CAPTURE_CAMERA = "nerfbot_capture"
 
 
+def _generators() -> dict[str, Callable[[int], str]]:
+    from sims.glassware import glassware_xml
+
+    return {"glassware": glassware_xml}
+
+
 def builtin_scenes() -> list[str]:
-    """Names of the scenes packaged in ``sims/scenes/*.xml``."""
+    """Names of the scenes packaged in ``sims/scenes/*.xml`` and of the generated families."""
     root = importlib.resources.files("sims") / "scenes"
-    return sorted(p.name[:-4] for p in root.iterdir() if p.name.endswith(".xml"))
+    files = [p.name[:-4] for p in root.iterdir() if p.name.endswith(".xml")]
+    return sorted(files + list(_generators()))
+
+
+def scene_cache_dir() -> Path:
+    """Where generated scenes are written: ``$NERFBOT_CACHE/scenes`` (default
+    ``~/.cache/nerfbot/scenes``)."""
+    base = os.environ.get("NERFBOT_CACHE") or Path.home() / ".cache" / "nerfbot"
+    return Path(base) / "scenes"
+
+
+def parse_generated(text: str) -> tuple[str, int] | None:
+    """("glassware", 3) for ``glassware:3`` (seed 0 without ``:SEED``); None if ``text`` does not
+    name a generated scene family. ValueError for a malformed seed."""
+    family, _, seed = text.partition(":")
+    if family not in _generators():
+        return None
+    try:
+        return family, int(seed) if seed else 0
+    except ValueError:
+        raise ValueError(f"scene '{text}': the seed after ':' must be an integer") from None
+
+
+def generated_scene(family: str, seed: int) -> Path:
+    """Write generated scene ``family`` with ``seed`` to the scene cache (atomically; rewritten
+    only when its text changed) and return the file."""
+    text = _generators()[family](seed)
+    path = scene_cache_dir() / f"{family}-{seed}.xml"
+    if path.is_file() and path.read_text() == text:
+        return path
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+    os.replace(tmp, path)
+    return path
 
 
 def resolve_scene(scene: str | Path) -> Path:
-    """Path of the MJCF file for ``scene``: a built-in name or a path to an ``.xml`` file.
+    """Path of the MJCF file for ``scene``: a built-in name, a generated family with an optional
+    seed (``glassware:3``, written to :func:`scene_cache_dir`), or a path to an ``.xml`` file.
 
     Raises:
         FileNotFoundError: neither a built-in scene nor an existing file; the message lists the
@@ -26,6 +72,9 @@ def resolve_scene(scene: str | Path) -> Path:
     """
     text = str(scene)
     if isinstance(scene, str) and "/" not in text and not text.endswith(".xml"):
+        generated = parse_generated(text)
+        if generated is not None:
+            return generated_scene(*generated)
         resource = importlib.resources.files("sims") / "scenes" / f"{text}.xml"
         if resource.is_file():
             return Path(str(resource))

@@ -39,6 +39,8 @@ class Dataset:
         manifest: the scene manifest dict written by ``sims``, or None.
         background: "learned" (function of ray direction), or an RGB triple in [0, 1] when the
             images were composited on a fixed colour.
+        sensor_depths: N arrays (H_i, W_i) float32 z-depth of a simulated depth sensor (NaN = no
+            return) or None per frame; [] when the reader had none to offer.
     """
 
     root: Path
@@ -60,6 +62,7 @@ class Dataset:
     manifest: Optional[dict] = None
     background: object = "learned"
     extras: dict = field(default_factory=dict)
+    sensor_depths: list = field(default_factory=list)
 
     def __len__(self) -> int:
         return len(self.images)

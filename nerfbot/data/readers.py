@@ -56,6 +56,7 @@ class _Frame:
     depth: Optional[np.ndarray]
     mask: Optional[np.ndarray]
     seg: Optional[np.ndarray]
+    sensor_depth: Optional[np.ndarray] = None
 
 
 def parse_background(value) -> Optional[tuple]:
@@ -121,10 +122,13 @@ def _load_frame(spec: FrameSpec, background: tuple) -> _Frame:
     _check_declared_size(spec, width, height)
     intr = resolve_intrinsics(spec.camera, width, height, spec.where)
     shape = (height, width)
-    depth = mask = seg = None
+    depth = mask = seg = sensor = None
     if spec.depth_path is not None:
         depth = read_depth(spec.depth_path, f"{spec.where}.{spec.depth_field}", shape,
                            spec.depth_scale)
+    if spec.sensor_depth_path is not None:
+        sensor = read_depth(spec.sensor_depth_path, f"{spec.where}.sensor_depth_file_path", shape,
+                            spec.depth_scale)
     if spec.mask_path is not None:
         mask = read_mask(spec.mask_path, f"{spec.where}.mask_path", shape)
     if spec.segmentation_path is not None:
@@ -140,13 +144,15 @@ def _load_frame(spec: FrameSpec, background: tuple) -> _Frame:
             rgb = u.linear(rgb, 0)
         if depth is not None:
             depth = u.nearest(depth, np.nan)
+        if sensor is not None:
+            sensor = u.nearest(sensor, np.nan)
         if seg is not None:
             seg = u.nearest(seg, -1)
         if mask is not None:
             mask = u.nearest(mask, False) & u.valid
         elif not u.valid.all():
             mask = u.valid.copy()
-    return _Frame(rgb, alpha, intr, depth, mask, seg)
+    return _Frame(rgb, alpha, intr, depth, mask, seg, sensor)
 
 
 def _load_frames(parsed: ParsedDataset, background: tuple) -> list[_Frame]:
@@ -275,6 +281,7 @@ def load_dataset(path: Union[str, os.PathLike], *, aabb=None, background=None) -
         depths=[f.depth for f in frames],
         masks=[f.mask for f in frames],
         segmentations=[f.seg for f in frames],
+        sensor_depths=[f.sensor_depth for f in frames],
         times=None if times is None else np.asarray(times, dtype=np.float32),
         joints=joints,
         splits=parsed.splits if parsed.splits is not None else default_splits(len(frames)),

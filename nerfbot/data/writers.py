@@ -13,13 +13,15 @@ Layouts::
       images/frame_00000.png                train/r_0.png, test/r_0.png
       depth/frame_00000.npy                 train/r_0_depth.npy
       segmentation/frame_00000.npy          train/r_0_seg.npy
+      sensor_depth/frame_00000.npy          train/r_0_sensor_depth.npy   (optional)
 
 nerfstudio: intrinsics are global (``fl_x, fl_y, cx, cy, w, h``, ``camera_model: OPENCV`` with
 zero distortion); ``train_filenames`` / ``val_filenames`` / ``test_filenames`` list ``file_path``
 values (nerfstudio's own loader requires a ``val`` list once any split list is present, so
 ``val_filenames`` repeats the test list). Blender: ``camera_angle_x`` (horizontal fov, radians),
 ``file_path`` without extension; ``depth_file_path`` / ``segmentation_path`` are extensions.
-Both: an optional top-level ``scene`` object (the scene manifest of ``sims``), and optional
+Both: an optional per-frame ``sensor_depth_file_path`` (a simulated depth sensor's z-depth,
+float32 ``.npy``, metres, NaN = no return; see :mod:`sims.sensor`), an optional top-level ``scene`` object (the scene manifest of ``sims``), and optional
 per-frame ``time`` (in [0, 1]) and ``joints`` (name -> position).
 """
 
@@ -88,6 +90,13 @@ def _check_frame(rgb, depth, segmentation, width: int, height: int, where: str):
     return rgb, depth, segmentation
 
 
+def _check_sensor_depth(depth, width: int, height: int, where: str) -> np.ndarray:
+    depth = np.asarray(depth, dtype=np.float32)
+    if depth.shape != (height, width):
+        raise ValueError(f"{where}: sensor depth must be ({height}, {width}), got {depth.shape}")
+    return depth
+
+
 def _extensions(entry: dict, time: Optional[float], joints: Optional[dict]) -> dict:
     if time is not None:
         if not 0.0 <= float(time) <= 1.0:
@@ -120,12 +129,14 @@ class NerfstudioWriter:
 
     def add_frame(self, rgb: np.ndarray, c2w: np.ndarray, split: str = "train",
                   depth: Optional[np.ndarray] = None, segmentation: Optional[np.ndarray] = None,
-                  time: Optional[float] = None, joints: Optional[dict] = None) -> dict:
+                  time: Optional[float] = None, joints: Optional[dict] = None,
+                  sensor_depth: Optional[np.ndarray] = None) -> dict:
         """Write one frame's files and remember its JSON entry (returned).
 
         Args:
             rgb: (H, W, 3) uint8. c2w: (4, 4) pose. depth: (H, W) z-depth, metres.
             segmentation: (H, W) geom ids. split: "train", "val" or "test".
+            sensor_depth: (H, W) z-depth of a simulated depth sensor, metres (NaN = no return).
         """
         index = len(self.frames)
         stem = f"frame_{index:05d}"
@@ -141,6 +152,10 @@ class NerfstudioWriter:
         if segmentation is not None:
             entry["segmentation_path"] = f"segmentation/{stem}.npy"
             _save_npy(self.root / entry["segmentation_path"], segmentation)
+        if sensor_depth is not None:
+            entry["sensor_depth_file_path"] = f"sensor_depth/{stem}.npy"
+            _save_npy(self.root / entry["sensor_depth_file_path"],
+                      _check_sensor_depth(sensor_depth, self.width, self.height, where))
         self.frames.append(_extensions(entry, time, joints))
         self.splits.setdefault(split, []).append(entry["file_path"])
         return entry
@@ -183,7 +198,8 @@ class BlenderWriter:
 
     def add_frame(self, rgb: np.ndarray, c2w: np.ndarray, split: str = "train",
                   depth: Optional[np.ndarray] = None, segmentation: Optional[np.ndarray] = None,
-                  time: Optional[float] = None, joints: Optional[dict] = None) -> dict:
+                  time: Optional[float] = None, joints: Optional[dict] = None,
+                  sensor_depth: Optional[np.ndarray] = None) -> dict:
         """Write one frame as ``<split>/r_<i>.png`` (+ ``_depth.npy``, ``_seg.npy``)."""
         frames = self.frames.setdefault(split, [])
         stem = f"{split}/r_{len(frames)}"
@@ -199,6 +215,10 @@ class BlenderWriter:
         if segmentation is not None:
             entry["segmentation_path"] = f"./{stem}_seg.npy"
             _save_npy(self.root / f"{stem}_seg.npy", segmentation)
+        if sensor_depth is not None:
+            entry["sensor_depth_file_path"] = f"./{stem}_sensor_depth.npy"
+            _save_npy(self.root / f"{stem}_sensor_depth.npy",
+                      _check_sensor_depth(sensor_depth, self.width, self.height, where))
         frames.append(_extensions(entry, time, joints))
         return entry
 

@@ -1,0 +1,533 @@
+"""Depth → grasp → lift, in MuJoCo physics: how well a robot grasps glass from each depth source.
+
+``python -m tasks.grasp --scene glassware --depth dexnerf --trials 10 --seed 0``
+
+A trial is one randomised scene (scene seed = ``--seed`` + trial index). For each trial:
+
+1. the scene is captured (posed RGB images, :mod:`sims.capture`) and a radiance field is trained
+   on it (``ngp``), unless a cached run for the same scene seed and settings exists;
+2. for every object of the scene, depth maps are taken from ``--query-views`` cameras around the
+   object (a ring looking at it) from the chosen depth source:
+
+   - ``gt``: MuJoCo's exact depth, glass opaque (the planner's own ceiling);
+   - ``sensor``: a simulated RGB-D sensor (:mod:`sims.sensor`) that sees through glass;
+   - ``nerf``: the field's expected depth;
+   - ``dexnerf``: the field's threshold depth (Dex-NeRF) at density ``--threshold``; by default
+     the threshold is calibrated on a held-out scene (the best threshold on its transparent
+     pixels, :func:`nerfbot.depth_eval.depth_mode_sweep`), never on the trial scenes;
+
+3. the depth maps become one world-frame point cloud with normals (:mod:`nerfbot.pointcloud`),
+   the antipodal planner (:mod:`tasks.planner`) picks the best grasp near the object, and the
+   gripper executes it in physics from the scene's resting state (:mod:`tasks.execute`).
+   Success: the object is lifted by at least 10 cm and held for 2 s.
+
+Outputs in ``--out``: ``log.json`` (every attempt, its grasp and outcome), ``summary.json``, and
+one PNG per attempt (query view | the source's depth | the scene after the hold).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Callable, Optional, Sequence
+
+import sims  # noqa: F401  (selects the GL backend before mujoco is imported)
+
+import mujoco
+import numpy as np
+from tqdm import tqdm
+
+from nerfbot.cameras import Cameras, look_at
+from nerfbot.data.writers import write_json_atomic
+from nerfbot.pointcloud import cloud_arrays, depth_to_cloud, fuse_clouds
+from sims.camera import CaptureCamera
+from sims.manifest import rendered_geoms
+from sims.scene import CAPTURE_CAMERA, resolve_scene
+from sims.sensor import DepthSensorModel
+from tasks.execute import ExecutionResult, execute_grasp, settle
+from tasks.grasp_pose import Grasp
+
+log = logging.getLogger(__name__)
+
+#: Scene seed of the held-out scene on which the Dex-NeRF threshold is calibrated.
+CALIBRATION_SEED = 1000
+
+
+@dataclass
+class GraspTaskConfig:
+    """Settings of a grasping experiment (lengths in metres, angles in degrees)."""
+
+    scene: str = "glassware"
+    depth: str = "dexnerf"
+    trials: int = 10
+    seed: int = 0
+    objects: str = "all"
+    """"glass" (transparent objects), "opaque" (the look-alikes), "all", or comma-separated names."""
+    threshold: Optional[float] = None
+    """Dex-NeRF density threshold (1/m); None = calibrate on scene seed CALIBRATION_SEED."""
+    capture_views: int = 100
+    capture_test_views: int = 10
+    capture_size: int = 160
+    train_seconds: float = 150.0
+    method: str = "ngp"
+    query_views: int = 8
+    query_size: int = 128
+    query_fov: float = 40.0
+    query_radius: float = 0.5
+    query_elevation: float = 40.0
+    crop_radius: float = 0.2
+    """Points farther than this (horizontally) from the object are dropped before planning."""
+    sensor_mode: str = "behind"
+    cache: Path = field(default_factory=lambda: Path.home() / ".cache" / "nerfbot" / "grasp")
+    out: Path = Path("grasp_out")
+    device: str = "cpu"
+    progress: bool = True
+
+
+# ------------------------------------------------------------------------------ scene + field
+def scene_name(cfg: GraspTaskConfig, scene_seed: int) -> str:
+    return f"{cfg.scene}:{scene_seed}"
+
+
+def scene_folder(cfg: GraspTaskConfig, scene_seed: int) -> Path:
+    """Cache folder of one scene seed's capture and runs."""
+    return (Path(cfg.cache) / f"{cfg.scene}-{scene_seed}" /
+            f"{cfg.capture_size}px-{cfg.capture_views}v")
+
+
+def ensure_capture(cfg: GraspTaskConfig, scene_seed: int) -> Path:
+    """The scene's capture (RGB + depth + segmentation + sensor depth), captured if missing."""
+    from sims.capture import capture
+    from sims.cli import default_rig
+    from sims.rigs import make_test_rig
+
+    out = scene_folder(cfg, scene_seed) / "data"
+    if (out / "transforms.json").exists():
+        return out
+    name = scene_name(cfg, scene_seed)
+    rig = default_rig(name, count=cfg.capture_views, width=cfg.capture_size,
+                      height=cfg.capture_size, seed=scene_seed)
+    capture(name, rig, make_test_rig(rig, cfg.capture_test_views), out, progress=cfg.progress,
+            sensor=DepthSensorModel(transparent=cfg.sensor_mode, seed=scene_seed))
+    return out
+
+
+def ensure_trained(cfg: GraspTaskConfig, scene_seed: int) -> Path:
+    """A run of ``cfg.method`` trained ``cfg.train_seconds`` on the scene's capture; trained (or
+    resumed after an interruption) if its checkpoint is missing or incomplete."""
+    from nerfbot.data import load_dataset
+    from nerfbot.training import CHECKPOINT, TrainConfig, Trainer
+
+    data = ensure_capture(cfg, scene_seed)
+    run = scene_folder(cfg, scene_seed) / f"{cfg.method}-{cfg.train_seconds:g}s"
+    done = run / "done.json"
+    if done.exists():
+        return run
+    ds = load_dataset(data)
+    trainer = Trainer(ds, run, TrainConfig(method=cfg.method, max_seconds=cfg.train_seconds,
+                                           seed=scene_seed, device=cfg.device,
+                                           progress=cfg.progress))
+    if (run / CHECKPOINT).exists():
+        trainer.load()
+    summary = trainer.train()
+    write_json_atomic(done, summary)
+    return run
+
+
+def calibrate_threshold(cfg: GraspTaskConfig) -> dict:
+    """Best Dex-NeRF threshold on the transparent pixels of the held-out calibration scene
+    (cached in ``calibration.json`` beside its run); returns the sweep summary."""
+    from nerfbot.data import load_dataset
+    from nerfbot.depth_eval import depth_mode_sweep, plot_threshold_sweep
+    from nerfbot.training import load_model
+
+    run = ensure_trained(cfg, CALIBRATION_SEED)
+    path = run / "calibration.json"
+    if path.exists():
+        return json.loads(path.read_text())
+    model, _ = load_model(run, cfg.device)
+    ds = load_dataset(scene_folder(cfg, CALIBRATION_SEED) / "data")
+    sweep = depth_mode_sweep(model, ds, "test", progress=cfg.progress)
+    best = sweep.best_threshold["transparent"]
+    if best is None:
+        raise RuntimeError(f"{run}: no threshold gives depth on enough transparent pixels")
+    plot_threshold_sweep(sweep, run / "threshold_sweep.png",
+                         title=f"{cfg.scene} seed {CALIBRATION_SEED} (calibration)")
+    result = {"threshold": best, "sweep": sweep.to_dict()}
+    write_json_atomic(path, result)
+    return result
+
+
+# ------------------------------------------------------------------------------ physics world
+class World:
+    """The scene with a capture camera and the gripper, compiled once; its resting state."""
+
+    def __init__(self, scene: str, query_size: int, query_fov: float):
+        from sims.gripper import add_gripper
+
+        path = resolve_scene(scene)
+        spec = mujoco.MjSpec.from_file(str(path))
+        spec.worldbody.add_camera(name=CAPTURE_CAMERA, pos=[0, 0, 0], quat=[1, 0, 0, 0])
+        add_gripper(spec)
+        self.model = spec.compile()
+        self.data = mujoco.MjData(self.model)
+        mujoco.mj_forward(self.model, self.data)
+        settle(self.model, self.data, 0.5)
+        self.rest_qpos = self.data.qpos.copy()
+        self.rest_qvel = self.data.qvel.copy()
+        self.rest_act = self.data.act.copy()
+        self.camera = CaptureCamera(self.model, self.data, query_size, query_size, query_fov)
+        self.transparent = sorted({int(g.objid) for g in rendered_geoms(self.model, self.data)
+                                   if g.rgba[3] < 1.0})
+
+    def reset(self) -> None:
+        """Back to the resting state (objects settled, gripper parked)."""
+        mujoco.mj_resetData(self.model, self.data)
+        self.data.qpos[:] = self.rest_qpos
+        self.data.qvel[:] = self.rest_qvel
+        self.data.act[:] = self.rest_act
+        mujoco.mj_forward(self.model, self.data)
+
+    def object_position(self, name: str) -> np.ndarray:
+        return self.data.body(name).xpos.copy()
+
+    def close(self) -> None:
+        self.camera.close()
+
+
+def query_poses(center: np.ndarray, cfg: GraspTaskConfig) -> list[np.ndarray]:
+    """c2w poses of a ring of ``query_views`` cameras looking at ``center`` (3,)."""
+    poses = []
+    el = math.radians(cfg.query_elevation)
+    for k in range(cfg.query_views):
+        az = 2 * math.pi * k / cfg.query_views
+        eye = center + cfg.query_radius * np.array([math.cos(el) * math.cos(az),
+                                                    math.cos(el) * math.sin(az), math.sin(el)])
+        poses.append(look_at(eye, center))
+    return poses
+
+
+# ------------------------------------------------------------------------------ depth sources
+@dataclass
+class DepthContext:
+    """What a depth source may use: the world at rest and, for field sources, a trained model."""
+
+    world: World
+    model: Optional[object] = None
+    threshold: Optional[float] = None
+    sensor: Optional[DepthSensorModel] = None
+
+
+def _gt_depth(ctx: DepthContext, poses: Sequence[np.ndarray]) -> list[np.ndarray]:
+    return [ctx.world.camera.render(p).depth for p in poses]
+
+
+def _sensor_depth(ctx: DepthContext, poses: Sequence[np.ndarray]) -> list[np.ndarray]:
+    cam, out = ctx.world.camera, []
+    for k, p in enumerate(poses):
+        frame = cam.render(p)
+        behind = cam.depth_without(ctx.world.transparent) if ctx.world.transparent else frame.depth
+        glass = np.isin(frame.segmentation, ctx.world.transparent)
+        out.append(ctx.sensor.read(behind, glass, view_index=k))
+    return out
+
+
+def _field_cameras(ctx: DepthContext, poses: Sequence[np.ndarray]) -> Cameras:
+    k = ctx.world.camera.intrinsics
+    n = len(poses)
+    return Cameras.from_numpy(np.stack(poses), [[k.fx, k.fy, k.cx, k.cy]] * n,
+                              [[k.width, k.height]] * n)
+
+
+def _nerf_depth(ctx: DepthContext, poses: Sequence[np.ndarray]) -> list[np.ndarray]:
+    from nerfbot.query import depth
+
+    cams = _field_cameras(ctx, poses)
+    return [depth(ctx.model, cams, i, mode="expected") for i in range(len(poses))]
+
+
+def _dexnerf_depth(ctx: DepthContext, poses: Sequence[np.ndarray]) -> list[np.ndarray]:
+    from nerfbot.query import depth
+
+    cams = _field_cameras(ctx, poses)
+    return [depth(ctx.model, cams, i, mode="threshold", threshold=ctx.threshold)
+            for i in range(len(poses))]
+
+
+#: Depth source name -> (needs a trained field, function(context, poses) -> z-depth maps).
+DEPTH_SOURCES: dict[str, tuple[bool, Callable]] = {
+    "gt": (False, _gt_depth),
+    "sensor": (False, _sensor_depth),
+    "nerf": (True, _nerf_depth),
+    "dexnerf": (True, _dexnerf_depth),
+}
+
+
+# ------------------------------------------------------------------------------ one attempt
+@dataclass
+class Attempt:
+    """One grasp attempt on one object of one trial scene."""
+
+    trial: int
+    scene_seed: int
+    object: str
+    transparent: bool
+    depth_source: str
+    success: bool
+    reason: str
+    points: int
+    grasp: Optional[dict] = None
+    lift_height: Optional[float] = None
+    seconds: float = 0.0
+
+
+def cloud_from_depths(depths: Sequence[np.ndarray], poses: Sequence[np.ndarray],
+                      world: World, center: np.ndarray, crop_radius: float):
+    """Fused world-frame cloud (points, normals) of the depth maps, cropped around ``center``."""
+    k = world.camera.intrinsics
+    clouds = [depth_to_cloud(d, k.fx, k.fy, k.cx, k.cy, p, max_depth=3.0, normal_radius=0.012)
+              for d, p in zip(depths, poses)]
+    points, normals = cloud_arrays(fuse_clouds(clouds, voxel=0.003))
+    keep = np.linalg.norm(points[:, :2] - center[:2], axis=1) <= crop_radius
+    return points[keep], (normals[keep] if normals is not None else None)
+
+
+def attempt_object(world: World, ctx: DepthContext, source: str, name: str, trial: int,
+                   scene_seed: int, cfg: GraspTaskConfig, image_path: Optional[Path]) -> Attempt:
+    """Query depth around object ``name``, plan, execute from rest, report."""
+    from tasks.planner import plan_grasps
+
+    t0 = time.perf_counter()
+    world.reset()
+    base = world.object_position(name)
+    glass = any(world.model.geom_bodyid[g] == world.model.body(name).id for g in world.transparent)
+    center = base + np.array([0.0, 0.0, 0.06])
+    poses = query_poses(center, cfg)
+    depths = DEPTH_SOURCES[source][1](ctx, poses)
+    points, normals = cloud_from_depths(depths, poses, world, center, cfg.crop_radius)
+    grasps = plan_grasps(points, normals, target=base[:2]) if len(points) else []
+    attempt = Attempt(trial, scene_seed, name, glass, source, False, "", len(points))
+    if not grasps:
+        attempt.reason = "no grasp found"
+    else:
+        best: Grasp = grasps[0]
+        world.reset()
+        result: ExecutionResult = execute_grasp(world.model, world.data, best, name)
+        attempt.success, attempt.reason = bool(result.success), result.reason
+        attempt.grasp, attempt.lift_height = best.to_dict(), float(result.lift_height)
+    if image_path is not None:
+        _attempt_sheet(world, poses[0], depths[0], image_path, attempt)
+    attempt.seconds = time.perf_counter() - t0
+    return attempt
+
+
+def _attempt_sheet(world: World, pose: np.ndarray, depth_map: np.ndarray, path: Path,
+                   attempt: Attempt) -> None:
+    """PNG: the scene at rest from the first query view | the source's depth there | the scene
+    now (after the hold), gripper visible."""
+    import cv2
+
+    from nerfbot.export import colorize_depth, save_image
+
+    cam = world.camera
+    after = cam.option.geomgroup[3]
+    cam.option.geomgroup[3] = 1
+    try:
+        now = cam.render(pose).rgb
+    finally:
+        cam.option.geomgroup[3] = after
+    state = world.data.qpos.copy()
+    world.reset()
+    rest = cam.render(pose).rgb
+    world.data.qpos[:] = state
+    mujoco.mj_forward(world.model, world.data)
+    sheet = np.concatenate([rest, colorize_depth(depth_map), now], axis=1)
+    label = f"{attempt.object} [{attempt.depth_source}] {'OK' if attempt.success else 'FAIL'}"
+    sheet = np.ascontiguousarray(sheet)
+    cv2.putText(sheet, label, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1,
+                cv2.LINE_AA)
+    save_image(path, sheet)
+
+
+# ------------------------------------------------------------------------------ experiment
+def select_objects(world_model: mujoco.MjModel, manifest_objects: list[str],
+                   transparent: set[str], which: str) -> list[str]:
+    """Object names of ``which`` ("glass", "opaque", "all" or comma-separated names)."""
+    if which == "all":
+        return list(manifest_objects)
+    if which == "glass":
+        return [o for o in manifest_objects if o in transparent]
+    if which == "opaque":
+        return [o for o in manifest_objects if o not in transparent]
+    names = [n.strip() for n in which.split(",") if n.strip()]
+    unknown = [n for n in names if n not in manifest_objects]
+    if unknown:
+        raise ValueError(f"unknown objects {unknown}; the scene has {manifest_objects}")
+    return names
+
+
+def run_experiment(cfg: GraspTaskConfig, sources: Sequence[str]) -> dict:
+    """Run ``cfg.trials`` trials for every depth source in ``sources``; write logs and images.
+
+    Returns {source: summary dict} (see :func:`summarize`)."""
+    from sims.manifest import declared_objects, geom_name
+
+    for s in sources:
+        if s not in DEPTH_SOURCES:
+            raise ValueError(f"unknown depth source {s!r} (choose from {list(DEPTH_SOURCES)})")
+    out = Path(cfg.out)
+    (out / "trials").mkdir(parents=True, exist_ok=True)
+    needs_field = any(DEPTH_SOURCES[s][0] for s in sources)
+    threshold, calibration = cfg.threshold, None
+    if "dexnerf" in sources and threshold is None:
+        calibration = calibrate_threshold(cfg)
+        threshold = calibration["threshold"]
+        log.info("Dex-NeRF threshold %.3g /m (calibrated on scene seed %d)", threshold,
+                 CALIBRATION_SEED)
+    attempts: list[Attempt] = []
+    for trial in range(cfg.trials):
+        scene_seed = cfg.seed + trial
+        model = None
+        if needs_field:
+            from nerfbot.training import load_model
+
+            model, _ = load_model(ensure_trained(cfg, scene_seed), cfg.device)
+        world = World(scene_name(cfg, scene_seed), cfg.query_size, cfg.query_fov)
+        try:
+            transparent = {geom_name(world.model, g) for g in world.transparent}
+            objects = select_objects(world.model, declared_objects(world.model), transparent,
+                                     cfg.objects)
+            ctx = DepthContext(world, model, threshold,
+                               DepthSensorModel(transparent=cfg.sensor_mode, seed=scene_seed))
+            jobs = [(s, o) for s in sources for o in objects]
+            bar = tqdm(jobs, desc=f"trial {trial + 1}/{cfg.trials} (scene {scene_seed})",
+                       unit="grasp", disable=not cfg.progress)
+            for source, name in bar:
+                image = out / "trials" / f"{source}_seed{scene_seed}_{name}.png"
+                attempts.append(attempt_object(world, ctx, source, name, trial, scene_seed, cfg,
+                                               image))
+                bar.set_postfix(ok=sum(a.success for a in attempts if a.depth_source == source))
+        finally:
+            world.close()
+        write_json_atomic(out / "log.json", {"config": _config_dict(cfg), "threshold": threshold,
+                                             "attempts": [asdict(a) for a in attempts]})
+    summaries = {s: summarize([a for a in attempts if a.depth_source == s], s, cfg, threshold)
+                 for s in sources}
+    write_json_atomic(out / "summary.json", {"config": _config_dict(cfg), "threshold": threshold,
+                                             "calibration_seed": CALIBRATION_SEED
+                                             if calibration else None, "sources": summaries})
+    return summaries
+
+
+def _config_dict(cfg: GraspTaskConfig) -> dict:
+    d = asdict(cfg)
+    d["cache"], d["out"] = str(cfg.cache), str(cfg.out)
+    return d
+
+
+def _rate(items: list[Attempt]) -> Optional[float]:
+    return sum(a.success for a in items) / len(items) if items else None
+
+
+def summarize(attempts: list[Attempt], source: str, cfg: GraspTaskConfig,
+              threshold: Optional[float]) -> dict:
+    """Success rates overall, by transparency and by object, for one depth source."""
+    names = sorted({a.object for a in attempts}, key=lambda n: (not n.startswith("glass"), n))
+    reasons: dict[str, int] = {}
+    for a in attempts:
+        if not a.success:
+            key = a.reason.split(" (")[0] if a.reason else "unknown"
+            reasons[key] = reasons.get(key, 0) + 1
+    return {
+        "depth_source": source,
+        "trials": cfg.trials,
+        "attempts": len(attempts),
+        "success_rate": _rate(attempts),
+        "transparent_success_rate": _rate([a for a in attempts if a.transparent]),
+        "opaque_success_rate": _rate([a for a in attempts if not a.transparent]),
+        "per_object": {n: _rate([a for a in attempts if a.object == n]) for n in names},
+        "failures": reasons,
+        "threshold": threshold if source == "dexnerf" else None,
+        "scene": cfg.scene,
+        "seeds": [cfg.seed, cfg.seed + cfg.trials - 1],
+    }
+
+
+def format_table(summaries: dict) -> str:
+    """A plain-text table: objects as rows, depth sources as columns (success %)."""
+    sources = list(summaries)
+    names = []
+    for s in sources:
+        names += [n for n in summaries[s]["per_object"] if n not in names]
+    width = max([len(n) for n in names] + [14])
+    lines = [f"{'object':<{width}} " + " ".join(f"{s:>8}" for s in sources)]
+
+    def cell(v):
+        return f"{100 * v:7.0f}%" if v is not None else f"{'-':>8}"
+
+    for n in names:
+        lines.append(f"{n:<{width}} " + " ".join(cell(summaries[s]["per_object"].get(n))
+                                                 for s in sources))
+    lines.append("-" * len(lines[0]))
+    for label, key in (("transparent", "transparent_success_rate"),
+                       ("opaque", "opaque_success_rate"), ("all", "success_rate")):
+        lines.append(f"{label:<{width}} " + " ".join(cell(summaries[s][key]) for s in sources))
+    return "\n".join(lines)
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m tasks.grasp",
+                                     description=__doc__.split("\n")[0])
+    parser.add_argument("--scene", default="glassware", help="scene family (default glassware)")
+    parser.add_argument("--depth", default="dexnerf",
+                        help=f"depth source(s), comma-separated: {', '.join(DEPTH_SOURCES)}")
+    parser.add_argument("--trials", type=int, default=10, help="scenes (seeds) to try")
+    parser.add_argument("--seed", type=int, default=0, help="scene seed of the first trial")
+    parser.add_argument("--objects", default="all", help="glass | opaque | all | names")
+    parser.add_argument("--threshold", type=float, default=None,
+                        help="Dex-NeRF density threshold, 1/m (default: calibrate on a "
+                             f"held-out scene, seed {CALIBRATION_SEED})")
+    parser.add_argument("--train-seconds", type=float, default=GraspTaskConfig.train_seconds)
+    parser.add_argument("--capture-size", type=int, default=GraspTaskConfig.capture_size)
+    parser.add_argument("--capture-views", type=int, default=GraspTaskConfig.capture_views)
+    parser.add_argument("--query-views", type=int, default=GraspTaskConfig.query_views)
+    parser.add_argument("--sensor", choices=("behind", "invalid"), default="behind",
+                        help="what the simulated sensor returns on glass (default behind)")
+    parser.add_argument("--cache", type=Path, default=None, help="capture/run cache folder")
+    parser.add_argument("--out", type=Path, default=Path("grasp_out"))
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--json", action="store_true",
+                        help="print one JSON object (a single source) or {source: object}")
+    parser.add_argument("--no-progress", action="store_true")
+    args = parser.parse_args(argv)
+    if args.trials < 1:
+        parser.error("--trials must be at least 1")
+    cfg = GraspTaskConfig(scene=args.scene, depth=args.depth, trials=args.trials, seed=args.seed,
+                          objects=args.objects, threshold=args.threshold,
+                          train_seconds=args.train_seconds, capture_size=args.capture_size,
+                          capture_views=args.capture_views, query_views=args.query_views,
+                          sensor_mode=args.sensor, out=args.out, device=args.device,
+                          progress=not args.no_progress)
+    if args.cache is not None:
+        cfg = replace(cfg, cache=args.cache)
+    sources = [s.strip() for s in args.depth.split(",") if s.strip()]
+    try:
+        summaries = run_experiment(cfg, sources)
+    except (ValueError, FileNotFoundError, RuntimeError) as err:
+        parser.exit(2, f"{parser.prog}: error: {err}\n")
+    if args.json:
+        print(json.dumps(summaries[sources[0]] if len(sources) == 1 else summaries))
+    else:
+        print(format_table(summaries))
+        print(f"logs and per-attempt images in {cfg.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    raise SystemExit(main())

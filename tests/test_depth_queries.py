@@ -1,0 +1,134 @@
+"""Depth queries (expected / median / threshold), point clouds and the depth-mode sweep, on an
+analytic field (a slab of known density) rendered through the real occupancy-grid renderer."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from nerfbot.background import FixedBackground
+from nerfbot.cameras import Cameras, look_at
+from nerfbot.depth_eval import best_threshold
+from nerfbot.fields.base import Field
+from nerfbot.models import OccupancyModel
+from nerfbot.pointcloud import cloud_arrays, depth_to_cloud, fuse_clouds
+from nerfbot.query import depth, render_image
+
+SLAB_DENSITY = 40.0      # 1/m: faint, like glass (opacity 1 - exp(-40 * 0.02) = 0.55)
+SLAB = (0.50, 0.52)      # z range of the slab, metres
+FLOOR_Z = 0.2            # an opaque floor below it (density 1e4 for z < FLOOR_Z)
+
+
+class SlabField(Field):
+    """sigma = SLAB_DENSITY inside SLAB, 1e4 below FLOOR_Z, 0 elsewhere; constant grey."""
+
+    def density(self, x, cond=None):
+        z = x[:, 2]
+        sigma = torch.where((z >= SLAB[0]) & (z <= SLAB[1]), SLAB_DENSITY, 0.0)
+        sigma = torch.where(z < FLOOR_Z, 1e4, sigma)
+        return sigma.to(x.dtype), torch.zeros(len(x), 1)
+
+    def color(self, feat, d, cond=None):
+        return torch.full((len(feat), 3), 0.5)
+
+
+@pytest.fixture(scope="module")
+def slab_model():
+    aabb = torch.tensor([[-1.0, -1.0, 0.0], [1.0, 1.0, 1.0]])
+    model = OccupancyModel(SlabField(), FixedBackground((1.0, 1.0, 1.0)), aabb)
+    return model.eval()
+
+
+def _down_camera(height=1.5, size=16):
+    c2w = look_at(np.array([0.0, 0.0, height]), np.array([0.0, 0.0, 0.0]), up=np.array([0, 1.0, 0]))
+    f = size / (2 * np.tan(np.radians(20) / 2))
+    return Cameras.from_numpy(c2w[None], [[f, f, size / 2, size / 2]], [[size, size]]), c2w
+
+
+def test_threshold_depth_finds_the_faint_slab_that_expected_depth_misses(slab_model):
+    cams, _ = _down_camera()
+    z_threshold = depth(slab_model, cams, 0, mode="threshold", threshold=10.0)
+    z_expected = depth(slab_model, cams, 0, mode="expected")
+    z_median = depth(slab_model, cams, 0, mode="median")
+    surface = 1.5 - SLAB[1]                                  # z-depth of the slab's top face
+    step = float(slab_model.dt_min)
+    # first crossing, interpolated between samples: within one marching step of the face
+    assert np.abs(z_threshold - surface).max() < step
+    # expected depth lies between the slab and the floor (weight split 55 / 45)
+    assert np.all(z_expected > surface + 0.1) and np.all(z_expected < 1.5 - FLOOR_Z)
+    # median depth jumps between the two surfaces (the slab holds about half the weight): it
+    # is never the blend that expected depth is
+    near_slab = np.abs(z_median - surface) < 0.03
+    near_floor = np.abs(z_median - (1.5 - FLOOR_Z)) < 0.03
+    assert np.all(near_slab | near_floor)
+
+
+def test_threshold_above_every_density_is_invalid_not_the_near_plane(slab_model):
+    cams, _ = _down_camera()
+    maps = depth(slab_model, cams, 0, mode="threshold", threshold=[10.0, 1e3, 1e5])
+    assert maps.shape == (3, 16, 16)
+    surface = 1.5 - SLAB[1]
+    assert np.abs(maps[0] - surface).max() < float(slab_model.dt_min)
+    assert np.abs(maps[1] - (1.5 - FLOOR_Z)).max() < float(slab_model.dt_min)  # slab too faint
+    assert np.isnan(maps[2]).all()                                            # never reached
+
+
+def test_depth_query_rejects_bad_modes_and_thresholds(slab_model):
+    cams, _ = _down_camera()
+    with pytest.raises(ValueError, match="unknown depth mode"):
+        depth(slab_model, cams, 0, mode="mean")
+    with pytest.raises(ValueError, match="needs threshold"):
+        depth(slab_model, cams, 0, mode="threshold")
+    with pytest.raises(ValueError, match="finite and > 0"):
+        depth(slab_model, cams, 0, mode="threshold", threshold=-1.0)
+
+
+def test_ray_distance_and_z_depth_differ_by_the_ray_cosine(slab_model):
+    cams, _ = _down_camera()
+    img = render_image(slab_model, cams, 0, thresholds=[10.0])
+    rays = cams.rays(0)
+    cos = rays.z_per_t.numpy().reshape(16, 16)
+    np.testing.assert_allclose(img["threshold_z_depth"][0], img["threshold_depth"][0] * cos,
+                               rtol=1e-5)
+
+
+def test_depth_map_back_projects_onto_the_plane_with_normals_towards_the_camera(slab_model):
+    cams, c2w = _down_camera(size=24)
+    z = depth(slab_model, cams, 0, mode="threshold", threshold=10.0)
+    fx, fy, cx, cy = (float(v) for v in (cams.fx[0], cams.fy[0], cams.cx[0], cams.cy[0]))
+    cloud = depth_to_cloud(z, fx, fy, cx, cy, c2w, normal_radius=0.05)
+    pts, normals = cloud_arrays(cloud)
+    assert len(pts) == 24 * 24
+    # every pixel lands on the slab's top face (world z = 0.52) within a marching step
+    assert np.abs(pts[:, 2] - SLAB[1]).max() < float(slab_model.dt_min)
+    assert np.all(normals[:, 2] > 0.95) and np.median(normals[:, 2]) > 0.99  # up, to the camera
+    # NaN pixels are skipped, and fusing keeps normals
+    z[:5] = np.nan
+    part = depth_to_cloud(z, fx, fy, cx, cy, c2w, normal_radius=0.05)
+    assert len(part.points) == 24 * 19
+    both = fuse_clouds([cloud, part])
+    assert len(both.points) == 24 * 43 and both.has_normals()
+
+
+def test_depth_to_cloud_matches_pinhole_back_projection_with_pixel_centres():
+    rng = np.random.default_rng(0)
+    h, w = 6, 8
+    z = rng.uniform(0.5, 2.0, size=(h, w)).astype(np.float32)
+    fx, fy, cx, cy = 7.0, 6.5, 4.0, 3.0
+    c2w = look_at(np.array([0.3, -1.0, 0.8]), np.array([0.0, 0.0, 0.2]))
+    pts, _ = cloud_arrays(depth_to_cloud(z, fx, fy, cx, cy, c2w, normals=False))
+    v, u = np.mgrid[0:h, 0:w]
+    cam = np.stack([(u + 0.5 - cx) / fx * z, -(v + 0.5 - cy) / fy * z, -z], -1).reshape(-1, 3)
+    want = cam @ c2w[:3, :3].T + c2w[:3, 3]
+    np.testing.assert_allclose(pts, want, atol=1e-5)
+
+
+def test_best_threshold_needs_enough_valid_pixels():
+    rows = [dict(threshold=1.0, mae_m=0.05, valid_fraction=1.0),
+            dict(threshold=10.0, mae_m=0.01, valid_fraction=0.95),
+            dict(threshold=100.0, mae_m=0.001, valid_fraction=0.3),
+            dict(threshold=1000.0, mae_m=None, valid_fraction=0.0)]
+    assert best_threshold(rows) == 10.0
+    assert best_threshold(rows, min_valid=0.2) == 100.0
+    assert best_threshold(rows[3:]) is None
