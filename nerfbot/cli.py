@@ -16,7 +16,8 @@ log = logging.getLogger("nerfbot")
 
 
 # -- helpers ---------------------------------------------------------------------------------
-def _parse_option(text: str) -> tuple[str, object]:
+def parse_option(text: str) -> tuple[str, object]:
+    """``key=value`` -> (key, value), the value parsed as JSON when it is JSON (numbers, bools)."""
     if "=" not in text:
         raise argparse.ArgumentTypeError(f"--option expects key=value, got {text!r}")
     key, value = text.split("=", 1)
@@ -243,7 +244,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--background", default=None,
                    help="learned | white | black | R,G,B (default: learned for RGB captures, "
                         "the compositing colour for RGBA ones)")
-    p.add_argument("--option", action="append", type=_parse_option, metavar="KEY=VALUE",
+    p.add_argument("--option", action="append", type=parse_option, metavar="KEY=VALUE",
                    help="method option, e.g. log2_hashmap_size=19 (repeatable)")
     p.add_argument("--eval-at", default=None, metavar="S1,S2,...",
                    help="record test PSNR at these training times (s), e.g. 30,60,120,180")

@@ -16,6 +16,22 @@ import open3d as o3d
 from nerfbot.cameras import opengl_to_opencv
 
 
+def depth_discontinuities(depth: np.ndarray, rel_jump: float) -> np.ndarray:
+    """(H, W) bool: pixels with a 4-neighbour whose z-depth differs by more than ``rel_jump``
+    times the nearer of the two (both sides of the jump are marked). Non-finite depths count
+    as very far. These are the "flying pixels" of depth sensors and the blended silhouettes of a
+    radiance field's expected depth."""
+    z = np.where(np.isfinite(depth), np.asarray(depth, dtype=np.float64), 1e6)
+    out = np.zeros(z.shape, dtype=bool)
+    dy = np.abs(np.diff(z, axis=0)) > rel_jump * np.minimum(z[1:], z[:-1])
+    dx = np.abs(np.diff(z, axis=1)) > rel_jump * np.minimum(z[:, 1:], z[:, :-1])
+    out[1:] |= dy
+    out[:-1] |= dy
+    out[:, 1:] |= dx
+    out[:, :-1] |= dx
+    return out
+
+
 def _intrinsic(fx: float, fy: float, cx: float, cy: float, width: int, height: int):
     return o3d.camera.PinholeCameraIntrinsic(int(width), int(height), float(fx), float(fy),
                                              float(cx) - 0.5, float(cy) - 0.5)
@@ -24,7 +40,8 @@ def _intrinsic(fx: float, fy: float, cx: float, cy: float, width: int, height: i
 def depth_to_cloud(depth: np.ndarray, fx: float, fy: float, cx: float, cy: float,
                    c2w: np.ndarray, *, rgb: Optional[np.ndarray] = None, max_depth: float = 100.0,
                    normals: bool = True, normal_radius: float = 0.01, normal_max_nn: int = 30,
-                   stride: int = 1) -> o3d.geometry.PointCloud:
+                   stride: int = 1, max_edge_jump: Optional[float] = None
+                   ) -> o3d.geometry.PointCloud:
     """Back-project one z-depth map into a world-frame point cloud.
 
     Args:
@@ -36,6 +53,8 @@ def depth_to_cloud(depth: np.ndarray, fx: float, fy: float, cx: float, cy: float
         normals: estimate normals (open3d, hybrid radius / k-NN search) and orient them towards
             the camera centre, so they point out of the surfaces the camera saw.
         stride: use every ``stride``-th pixel.
+        max_edge_jump: drop pixels at depth discontinuities larger than this fraction of the
+            depth (:func:`depth_discontinuities`); None keeps them.
 
     Returns:
         An open3d PointCloud in world coordinates (metres).
@@ -44,7 +63,10 @@ def depth_to_cloud(depth: np.ndarray, fx: float, fy: float, cx: float, cy: float
     if depth.ndim != 2:
         raise ValueError(f"depth must be (H, W), got shape {depth.shape}")
     height, width = depth.shape
-    clean = np.where(np.isfinite(depth) & (depth > 0) & (depth <= max_depth), depth, 0.0)
+    keep = np.isfinite(depth) & (depth > 0) & (depth <= max_depth)
+    if max_edge_jump is not None:
+        keep &= ~depth_discontinuities(depth, max_edge_jump)
+    clean = np.where(keep, depth, 0.0)
     clean = np.ascontiguousarray(clean, dtype=np.float32)
     extrinsic = np.linalg.inv(opengl_to_opencv(np.asarray(c2w, dtype=np.float64)))
     intr = _intrinsic(fx, fy, cx, cy, width, height)

@@ -56,6 +56,9 @@ def generated_scene(family: str, seed: int) -> Path:
         return path
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    from nerfbot.data.writers import default_file_mode
+
+    os.fchmod(fd, default_file_mode())
     with os.fdopen(fd, "w") as f:
         f.write(text)
     os.replace(tmp, path)

@@ -15,6 +15,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from nerfbot.pointcloud import depth_discontinuities
+
 TRANSPARENT_MODES = ("behind", "invalid")
 
 
@@ -86,7 +88,7 @@ class DepthSensorModel:
         if self.transparent == "invalid":
             lost |= mask
         if self.edge_jump > 0:
-            lost |= _edges(np.where(np.isfinite(z), z, 1e6), self.edge_jump)
+            lost |= depth_discontinuities(z, self.edge_jump)
         if self.dropout > 0:
             lost |= rng.random(z.shape) < self.dropout
         noisy = z + rng.standard_normal(z.shape) * self.sigma(np.where(lost, 1.0, z))
@@ -94,18 +96,6 @@ class DepthSensorModel:
             noisy = np.round(noisy / self.quantization) * self.quantization
         noisy[lost] = np.nan
         return noisy.astype(np.float32)
-
-
-def _edges(z: np.ndarray, jump: float) -> np.ndarray:
-    """(H, W) bool: pixels with a 4-neighbour whose depth differs by more than ``jump * z``."""
-    out = np.zeros(z.shape, dtype=bool)
-    dy = np.abs(np.diff(z, axis=0)) > jump * np.minimum(z[1:], z[:-1])
-    dx = np.abs(np.diff(z, axis=1)) > jump * np.minimum(z[:, 1:], z[:, :-1])
-    out[1:] |= dy
-    out[:-1] |= dy
-    out[:, 1:] |= dx
-    out[:, :-1] |= dx
-    return out
 
 
 def valid_fraction(sensor_depth: np.ndarray, pixels: np.ndarray | None = None) -> float:

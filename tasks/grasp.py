@@ -43,6 +43,7 @@ import numpy as np
 from tqdm import tqdm
 
 from nerfbot.cameras import Cameras, look_at
+from nerfbot.cli import parse_option
 from nerfbot.data.writers import write_json_atomic
 from nerfbot.pointcloud import cloud_arrays, depth_to_cloud, fuse_clouds
 from sims.camera import CaptureCamera
@@ -73,8 +74,14 @@ class GraspTaskConfig:
     capture_views: int = 100
     capture_test_views: int = 10
     capture_size: int = 160
-    train_seconds: float = 150.0
+    train_steps: Optional[int] = 1000
+    """Training budget in steps (deterministic, unaffected by machine load); None = seconds."""
+    train_seconds: float = 300.0
+    """Training budget in seconds when ``train_steps`` is None."""
     method: str = "ngp"
+    train_options: dict = field(default_factory=lambda: {"distortion_weight": 0.01})
+    """Method options of the training runs. The distortion loss (weight 0.01) halves the
+    floaters a threshold catches at low densities (BENCHMARKS.md, glassware calibration)."""
     query_views: int = 8
     query_size: int = 128
     query_fov: float = 40.0
@@ -82,6 +89,9 @@ class GraspTaskConfig:
     query_elevation: float = 40.0
     crop_radius: float = 0.2
     """Points farther than this (horizontally) from the object are dropped before planning."""
+    edge_jump: float = 0.02
+    """Depth pixels at discontinuities above this fraction of the depth are dropped, for every
+    source alike (flying pixels; a field's expected depth blends silhouettes)."""
     sensor_mode: str = "behind"
     cache: Path = field(default_factory=lambda: Path.home() / ".cache" / "nerfbot" / "grasp")
     out: Path = Path("grasp_out")
@@ -117,21 +127,30 @@ def ensure_capture(cfg: GraspTaskConfig, scene_seed: int) -> Path:
     return out
 
 
+def run_name(cfg: GraspTaskConfig) -> str:
+    """Run folder name: method, budget and options, e.g. ``ngp-300s`` or
+    ``ngp-300s-distortion_weight=0.01``."""
+    opts = "".join(f"-{k}={v}" for k, v in sorted(cfg.train_options.items()))
+    budget = f"{cfg.train_steps}steps" if cfg.train_steps else f"{cfg.train_seconds:g}s"
+    return f"{cfg.method}-{budget}{opts}"
+
+
 def ensure_trained(cfg: GraspTaskConfig, scene_seed: int) -> Path:
-    """A run of ``cfg.method`` trained ``cfg.train_seconds`` on the scene's capture; trained (or
-    resumed after an interruption) if its checkpoint is missing or incomplete."""
+    """A run of ``cfg.method`` trained ``cfg.train_steps`` steps (or ``cfg.train_seconds``) on the
+    scene's capture; trained (or resumed after an interruption) if it is missing or incomplete."""
     from nerfbot.data import load_dataset
     from nerfbot.training import CHECKPOINT, TrainConfig, Trainer
 
     data = ensure_capture(cfg, scene_seed)
-    run = scene_folder(cfg, scene_seed) / f"{cfg.method}-{cfg.train_seconds:g}s"
+    run = scene_folder(cfg, scene_seed) / run_name(cfg)
     done = run / "done.json"
     if done.exists():
         return run
     ds = load_dataset(data)
-    trainer = Trainer(ds, run, TrainConfig(method=cfg.method, max_seconds=cfg.train_seconds,
-                                           seed=scene_seed, device=cfg.device,
-                                           progress=cfg.progress))
+    budget = (dict(max_steps=cfg.train_steps) if cfg.train_steps
+              else dict(max_seconds=cfg.train_seconds))
+    trainer = Trainer(ds, run, TrainConfig(method=cfg.method, **budget, seed=scene_seed, options=dict(cfg.train_options),
+                                           device=cfg.device, progress=cfg.progress))
     if (run / CHECKPOINT).exists():
         trainer.load()
     summary = trainer.train()
@@ -287,10 +306,12 @@ class Attempt:
 
 
 def cloud_from_depths(depths: Sequence[np.ndarray], poses: Sequence[np.ndarray],
-                      world: World, center: np.ndarray, crop_radius: float):
+                      world: World, center: np.ndarray, crop_radius: float,
+                      edge_jump: Optional[float] = None):
     """Fused world-frame cloud (points, normals) of the depth maps, cropped around ``center``."""
     k = world.camera.intrinsics
-    clouds = [depth_to_cloud(d, k.fx, k.fy, k.cx, k.cy, p, max_depth=3.0, normal_radius=0.012)
+    clouds = [depth_to_cloud(d, k.fx, k.fy, k.cx, k.cy, p, max_depth=3.0, normal_radius=0.012,
+                             max_edge_jump=edge_jump)
               for d, p in zip(depths, poses)]
     points, normals = cloud_arrays(fuse_clouds(clouds, voxel=0.003))
     keep = np.linalg.norm(points[:, :2] - center[:2], axis=1) <= crop_radius
@@ -309,7 +330,8 @@ def attempt_object(world: World, ctx: DepthContext, source: str, name: str, tria
     center = base + np.array([0.0, 0.0, 0.06])
     poses = query_poses(center, cfg)
     depths = DEPTH_SOURCES[source][1](ctx, poses)
-    points, normals = cloud_from_depths(depths, poses, world, center, cfg.crop_radius)
+    points, normals = cloud_from_depths(depths, poses, world, center, cfg.crop_radius,
+                                        cfg.edge_jump)
     grasps = plan_grasps(points, normals, target=base[:2]) if len(points) else []
     attempt = Attempt(trial, scene_seed, name, glass, source, False, "", len(points))
     if not grasps:
@@ -492,7 +514,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--threshold", type=float, default=None,
                         help="Dex-NeRF density threshold, 1/m (default: calibrate on a "
                              f"held-out scene, seed {CALIBRATION_SEED})")
-    parser.add_argument("--train-seconds", type=float, default=GraspTaskConfig.train_seconds)
+    parser.add_argument("--train-steps", type=int, default=GraspTaskConfig.train_steps,
+                        help="training steps per scene (default %(default)s; 0 = use "
+                             "--train-seconds)")
+    parser.add_argument("--train-seconds", type=float, default=GraspTaskConfig.train_seconds,
+                        help="training time per scene when --train-steps is 0")
+    parser.add_argument("--option", action="append", default=[], type=parse_option,
+                        metavar="KEY=VALUE",
+                        help="method option of the training runs (repeatable)")
     parser.add_argument("--capture-size", type=int, default=GraspTaskConfig.capture_size)
     parser.add_argument("--capture-views", type=int, default=GraspTaskConfig.capture_views)
     parser.add_argument("--query-views", type=int, default=GraspTaskConfig.query_views)
@@ -509,7 +538,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         parser.error("--trials must be at least 1")
     cfg = GraspTaskConfig(scene=args.scene, depth=args.depth, trials=args.trials, seed=args.seed,
                           objects=args.objects, threshold=args.threshold,
+                          train_steps=args.train_steps or None,
                           train_seconds=args.train_seconds, capture_size=args.capture_size,
+                          train_options={**GraspTaskConfig().train_options, **dict(args.option)},
                           capture_views=args.capture_views, query_views=args.query_views,
                           sensor_mode=args.sensor, out=args.out, device=args.device,
                           progress=not args.no_progress)
