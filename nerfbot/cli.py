@@ -92,7 +92,7 @@ def cmd_train(args) -> int:
     summary = trainer.train()
     metrics = evaluate(trainer.model, ds, "test")
     metrics.update(method=args.method, num_params=num_params(trainer.model), **summary)
-    write_json_atomic(metrics, out / "metrics.json")
+    write_json_atomic(out / "metrics.json", metrics, allow_nan=True)
     print(json.dumps(metrics, indent=2))
     return 0
 

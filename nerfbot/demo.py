@@ -6,7 +6,6 @@ comparison sheet (ground truth | render | depth | error) and metrics.json.
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
@@ -48,7 +47,7 @@ def run_demo(out: Path, seconds: float = 60.0, size: int = 128, views: int = 60,
     metrics = evaluate(trainer.model, ds, "test")
     metrics.update(method="ngp", num_params=num_params(trainer.model),
                    curve=trainer.curve, **summary)
-    write_json_atomic(metrics, out / "metrics.json")
+    write_json_atomic(out / "metrics.json", metrics, allow_nan=True)
 
     test = ds.indices("test")
     cams = ds.cameras(test)

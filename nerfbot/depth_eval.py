@@ -151,6 +151,43 @@ def depth_mode_sweep(model: Model, dataset: Dataset, split: str = "test",
     return result
 
 
+def _merge(summaries: list[dict]) -> dict:
+    """Pool error summaries of several datasets (weights: pixels with a prediction)."""
+    pixels = sum(s["pixels"] for s in summaries)
+    have = [(s, s["valid_fraction"] * s["pixels"]) for s in summaries
+            if s["pixels"] and s["mae_m"] is not None]
+    n = sum(w for _, w in have)
+    return {"mae_m": sum(s["mae_m"] * w for s, w in have) / n if n else None,
+            "rmse_m": float(np.sqrt(sum(s["rmse_m"] ** 2 * w for s, w in have) / n)) if n else None,
+            "valid_fraction": n / pixels if pixels else None,
+            "pixels": pixels}
+
+
+def pool_sweeps(sweeps: list[DepthSweep]) -> DepthSweep:
+    """One sweep from several (e.g. one per scene) over the same thresholds: errors pooled over
+    all their pixels, the best threshold chosen again on the pooled errors."""
+    if not sweeps:
+        raise ValueError("no sweeps to pool")
+    thresholds = sweeps[0].thresholds
+    if any(s.thresholds != thresholds for s in sweeps):
+        raise ValueError("sweeps to pool must share their thresholds")
+    pooled = DepthSweep(list(thresholds), num_images=sum(s.num_images for s in sweeps))
+    for c in CLASSES:
+        modes = sorted({m for s in sweeps for m in s.modes.get(c, {})})
+        pooled.modes[c] = {m: _merge([s.modes[c][m] for s in sweeps if m in s.modes.get(c, {})])
+                           for m in modes}
+        pooled.threshold[c] = [dict(threshold=m, **_merge([s.threshold[c][k] for s in sweeps]))
+                               for k, m in enumerate(thresholds)]
+        pooled.best_threshold[c] = best_threshold(pooled.threshold[c])
+    return pooled
+
+
+def sweep_from_dict(d: dict) -> DepthSweep:
+    """Inverse of :meth:`DepthSweep.to_dict`."""
+    return DepthSweep(list(d["thresholds"]), dict(d["modes"]), dict(d["threshold"]),
+                      dict(d["best_threshold"]), int(d["num_images"]))
+
+
 def best_threshold(rows: list[dict], min_valid: float = MIN_VALID_FRACTION) -> Optional[float]:
     """The threshold of ``rows`` (dicts with threshold, mae_m, valid_fraction) with the lowest
     MAE among those valid on at least ``min_valid`` of the pixels; None if none qualifies."""

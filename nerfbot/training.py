@@ -3,7 +3,6 @@ steps or seconds, atomic checkpoints and exact resume."""
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
@@ -18,6 +17,7 @@ from tqdm.auto import tqdm
 
 from nerfbot.cameras import Rays, pixel_rays
 from nerfbot.data.dataset import Dataset
+from nerfbot.data.writers import write_json_atomic
 from nerfbot.methods import build_model, get_method
 from nerfbot.models import Model
 
@@ -118,23 +118,6 @@ def save_atomic(obj, path: Path) -> None:
     os.replace(tmp, path)
 
 
-def write_json_atomic(obj, path: Path) -> None:
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    tmp.write_text(json.dumps(obj, indent=2, default=_json_default))
-    os.replace(tmp, path)
-
-
-def _json_default(o):
-    if isinstance(o, (np.ndarray, torch.Tensor)):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
-
-
 def model_spec(config: TrainConfig, dataset: Dataset) -> dict:
     """Everything needed to rebuild the model without the dataset (stored in checkpoints)."""
     background = config.background if config.background is not None else dataset.background
@@ -214,7 +197,7 @@ class Trainer:
     def save(self) -> Path:
         path = self.out / CHECKPOINT
         save_atomic(self.state(), path)
-        write_json_atomic(self.curve, self.out / "curve.json")
+        write_json_atomic(self.out / "curve.json", self.curve, allow_nan=True)
         return path
 
     def load(self, path: Optional[Path] = None) -> bool:
@@ -264,8 +247,9 @@ class Trainer:
         use it to simulate interruptions). On KeyboardInterrupt a checkpoint is written first."""
         c = self.config
         warm_up_kernels()
-        write_json_atomic({"train": asdict(c), "data": str(self.dataset.root),
-                           "spec": self.spec}, self.out / "config.json")
+        write_json_atomic(self.out / "config.json", {"train": asdict(c),
+                                                     "data": str(self.dataset.root),
+                                                     "spec": self.spec}, allow_nan=True)
         pending_t = sorted(s for s in c.eval_at_seconds if s > self.train_seconds)
         pending_s = sorted(s for s in c.eval_at_steps if s > self.step)
         total = c.max_steps if c.max_steps is not None else None

@@ -15,9 +15,10 @@ import trimesh
 
 from sims.gripper import GRIPPER
 from tasks.grasp_pose import Grasp
-from tasks.planner import (PlannerConfig, TablePlane, antipodal_candidates, collision_free,
-                           fit_table, grasp_collision_free, orient_normals_outward, plan_grasps,
-                           prepare_cloud, segment_objects, select_clusters)
+from tasks.gripper_collision import collision_free, grasp_collision_free
+from tasks.planner import PlannerConfig, antipodal_candidates, plan_grasps
+from tasks.scene_cloud import (TablePlane, fit_table, orient_normals_outward, prepare_cloud,
+                               segment_objects, select_clusters)
 
 TABLE_Z = 0.75
 DENSITY = 120_000  # surface samples per square metre (about one per 3 mm voxel)

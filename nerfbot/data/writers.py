@@ -42,10 +42,23 @@ from nerfbot.cameras import check_pose
 FORMATS = ("nerfstudio", "blender")
 
 
-def write_json_atomic(path: Path, obj) -> Path:
+def json_default(o):
+    """JSON encoding of numpy / torch arrays and scalars (``tolist`` / ``item``) and paths."""
+    if isinstance(o, Path):
+        return str(o)
+    if hasattr(o, "tolist"):
+        return o.tolist()
+    if hasattr(o, "item"):
+        return o.item()
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def write_json_atomic(path: Path, obj, allow_nan: bool = False) -> Path:
     """Write ``obj`` as JSON to ``path`` atomically: a temporary sibling file, then ``os.replace``.
 
     A reader never sees a partial file; on failure the previous file (if any) is untouched.
+    Arrays, numpy / torch scalars and paths are converted (:func:`json_default`). ``allow_nan``
+    permits NaN / Infinity (not strict JSON; Python's json reads them back).
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -53,7 +66,7 @@ def write_json_atomic(path: Path, obj) -> Path:
     try:
         os.fchmod(fd, default_file_mode())  # mkstemp's 0600 would hide datasets from other users
         with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump(obj, f, indent=2, allow_nan=False)
+            json.dump(obj, f, indent=2, allow_nan=allow_nan, default=json_default)
             f.write("\n")
             f.flush()
             os.fsync(f.fileno())
