@@ -198,12 +198,10 @@ def best_threshold(rows: list[dict], min_valid: float = MIN_VALID_FRACTION) -> O
 def plot_threshold_sweep(sweep: DepthSweep, path: Path, title: str = "") -> Path:
     """PNG of MAE (and valid fraction) against the density threshold per class, with the
     expected / median / sensor depth as horizontal reference lines."""
-    import matplotlib
+    from matplotlib.figure import Figure  # no pyplot: leaves the caller's backend alone
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, (ax, axv) = plt.subplots(1, 2, figsize=(11, 4.2))
+    fig = Figure(figsize=(11, 4.2))
+    ax, axv = fig.subplots(1, 2)
     colours = {"transparent": "tab:blue", "opaque_objects": "tab:orange", "scene": "tab:gray"}
     styles = {"expected": "--", "median": ":", "sensor": "-."}
     for c in CLASSES:
@@ -231,5 +229,4 @@ def plot_threshold_sweep(sweep: DepthSweep, path: Path, title: str = "") -> Path
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path
