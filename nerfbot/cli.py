@@ -1,4 +1,4 @@
-"""The ``nerfbot`` command: capture, train, eval, render, demo.
+"""The ``nerfbot`` command: capture, train, eval, render, demo, bench.
 
 Heavy imports happen inside each command so ``nerfbot --help`` stays instant. ``sims`` is
 imported before anything that imports ``mujoco``, so headless machines get ``MUJOCO_GL=egl``.
@@ -213,6 +213,59 @@ def cmd_demo(args) -> int:
     return 0
 
 
+def _str_list(text: str) -> list[str]:
+    values = [v.strip() for v in text.split(",") if v.strip()]
+    if not values:
+        raise argparse.ArgumentTypeError("expected a comma-separated list")
+    return values
+
+
+def _int_list(text: str) -> list[int]:
+    try:
+        return [int(v) for v in _str_list(text)]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}")
+
+
+def _option_sweep(text: str):
+    from nerfbot.bench import parse_option_sweep
+
+    try:
+        return parse_option_sweep(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err))
+
+
+def cmd_bench(args) -> int:
+    from nerfbot.bench import BenchConfig, BenchError, run_bench
+
+    options: dict = {}
+    for key, values in args.option or []:  # a repeated key adds values
+        merged = options.setdefault(key, [])
+        merged += [v for v in values if v not in merged]
+    cfg = BenchConfig(data=[d for entry in args.data for d in entry], methods=args.methods,
+                      budgets=args.budgets, out=args.out, budget_kind=args.budget_kind,
+                      sizes=args.sizes or [None], options=options, repeats=args.repeats,
+                      seed=args.seed, views=args.views, test_views=args.test_views,
+                      eval_images=args.eval_images, chamfer=not args.no_chamfer,
+                      mesh_resolution=args.mesh_resolution, mesh_threshold=args.mesh_threshold,
+                      chamfer_points=args.chamfer_points, executor=args.executor,
+                      address=args.address, ray_num_cpus=args.ray_num_cpus, force=args.force,
+                      keep_checkpoints=args.keep_checkpoints, progress=not args.no_progress)
+    try:
+        result = run_bench(cfg)
+    except BenchError as err:
+        print(f"nerfbot bench: error: {err}", file=sys.stderr)
+        return 2
+    print(f"{result.ran} point(s) run, {result.skipped} already measured; "
+          f"{len(result.rows)} configuration(s) in {result.out / 'bench.md'}")
+    if result.failures:
+        print(f"nerfbot bench: {len(result.failures)} point(s) failed (see bench.json "
+              "'failures'; a rerun retries them)", file=sys.stderr)
+        return 1
+    return 0
+
+
 # -- parser ----------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
     from nerfbot.methods import METHODS
@@ -295,6 +348,67 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser(
+        "bench", help="sweep methods x budgets x knobs x scenes: speed, memory, quality, Pareto",
+        description="Train and evaluate every point of a sweep (scene x size x method x option "
+                    "values x budget x repeat), each in a fresh process, STRICTLY ONE AT A TIME "
+                    "on this machine: timings on a few cores must never overlap (with "
+                    "--executor ray, one point per cluster node). Writes bench.csv, bench.json, "
+                    "bench.md and PSNR-vs-train-time / PSNR-vs-render-FPS plots (Pareto fronts "
+                    "marked) to --out; metrics are medians over --repeats. Rerunning resumes: "
+                    "points already in bench.json are skipped unless --force.")
+    p.add_argument("--data", required=True, type=_str_list, action="append",
+                   metavar="DIR|SCENE[,...]",
+                   help="dataset folders and/or built-in scenes (tabletop, glassware, "
+                        "builtin:glassware:3, ...), comma-separated or repeated; built-in scenes "
+                        "are captured into OUT/data at each --sizes (an existing folder of the "
+                        "same name wins unless the name has the builtin: prefix)")
+    p.add_argument("--methods", default=["ngp"], type=_str_list, metavar="M1,M2,...",
+                   help="methods to compare (default ngp; available: "
+                        + ", ".join(sorted(METHODS)) + ")")
+    p.add_argument("--budgets", required=True, type=_float_list, metavar="B1,B2,...",
+                   help="training budgets: seconds of the training loop (or steps, see "
+                        "--budget-kind)")
+    p.add_argument("--budget-kind", choices=("seconds", "steps"), default="seconds")
+    p.add_argument("--out", required=True, type=Path, help="bench folder (resumed if it exists)")
+    p.add_argument("--sizes", type=_int_list, default=None, metavar="N1,N2,...",
+                   help="image sizes, pixels of the longer side: built-in scenes are captured "
+                        "at NxN, datasets downscaled (default: 128 for built-ins, datasets as "
+                        "they are)")
+    p.add_argument("--option", action="append", type=_option_sweep, metavar="KEY=V1,V2,...",
+                   help="sweep a method option (repeatable), e.g. log2_hashmap_size=15,17,19 "
+                        "(hash-table size), render_steps=128,256 (samples per ray), "
+                        "grid_resolution=32,64 (occupancy grid); a method sweeps only the "
+                        "options it has")
+    p.add_argument("--repeats", type=int, default=1, help="runs per point; tables show medians")
+    p.add_argument("--seed", type=int, default=0,
+                   help="repeat r trains with seed SEED+r; also the capture rig's seed")
+    p.add_argument("--views", type=int, default=60, help="train views of built-in captures")
+    p.add_argument("--test-views", type=int, default=10, help="test views of built-in captures")
+    p.add_argument("--eval-images", type=int, default=None, metavar="N",
+                   help="evaluate on the first N test images (default all)")
+    p.add_argument("--no-chamfer", action="store_true",
+                   help="skip meshing and the Chamfer distance to the MuJoCo geometry")
+    p.add_argument("--mesh-resolution", type=int, default=128,
+                   help="marching-cubes cells along the longest side of the content bounds")
+    p.add_argument("--mesh-threshold", type=float, default=None, metavar="SIGMA",
+                   help="surface density, 1/m (default: where one step of the default marcher, "
+                        "cube diagonal / 256, is 50%% opaque; about 80 for the tabletop)")
+    p.add_argument("--chamfer-points", type=int, default=100_000,
+                   help="surface samples per mesh for the Chamfer distance")
+    p.add_argument("--executor", choices=("local", "ray"), default="local",
+                   help="local: one subprocess per point, one at a time (default); ray: points "
+                        "as Ray tasks, each taking a whole node (pip install 'nerfbot[ray]')")
+    p.add_argument("--address", default=None,
+                   help="Ray cluster address (default: start a local Ray)")
+    p.add_argument("--ray-num-cpus", type=int, default=None, metavar="N",
+                   help="CPUs each Ray task reserves (default: all CPUs of the largest node)")
+    p.add_argument("--force", action="store_true", help="rerun points already in bench.json")
+    p.add_argument("--keep-checkpoints", action="store_true",
+                   help="keep each point's checkpoint.pt in OUT/runs (default: deleted)")
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=cmd_bench)
     return parser
 
 

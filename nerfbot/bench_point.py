@@ -1,0 +1,253 @@
+"""One benchmark point, measured in a process of its own: train, evaluate, mesh, compare.
+
+A point is a plain JSON-able dict (see :func:`nerfbot.bench.expand_points`); its result is
+another. Executors run :func:`run_point` in a fresh process per point: the local executor as
+``python -m nerfbot.bench_point RUN_DIR`` (reads ``RUN_DIR/point.json``, writes
+``RUN_DIR/result.json``), the Ray executor as a task in a worker used once.
+
+Peak memory is the process's resident-set high-water mark (``VmHWM``) measured around training
+and evaluation: it is reset just before the model is built (``/proc/self/clear_refs``, Linux),
+so it covers the model, optimiser, batches and renders plus what the process already held (the
+loaded dataset, libraries). Where the reset is unavailable it is the whole process's
+``ru_maxrss``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import platform
+import resource
+import shutil
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+POINT_FILE, RESULT_FILE, LOG_FILE = "point.json", "result.json", "log.txt"
+
+
+# -- datasets ----------------------------------------------------------------------------------
+def capture_builtin(spec: dict, out: Path, progress: bool = False) -> Path:
+    """Capture built-in scene ``spec["scene"]`` at ``spec["size"]`` pixels (square) with
+    ``spec["views"]`` train and ``spec["test_views"]`` test views (rig seed ``spec["seed"]``)."""
+    import sims  # noqa: F401  (MUJOCO_GL before mujoco)
+    from sims.capture import capture
+    from sims.cli import default_rig
+    from sims.rigs import make_test_rig
+
+    size = int(spec["size"])
+    rig = default_rig(spec["scene"], count=int(spec["views"]), width=size, height=size,
+                      seed=int(spec["seed"]))
+    test = make_test_rig(rig, int(spec["test_views"])) if spec["test_views"] > 0 else None
+    return capture(spec["scene"], rig, test, Path(out), progress=progress)
+
+
+def capture_cache_dir() -> Path:
+    """Where a worker captures a built-in scene the driver's folder does not reach:
+    ``$NERFBOT_CACHE/bench-captures`` (default ``~/.cache/nerfbot/bench-captures``)."""
+    base = os.environ.get("NERFBOT_CACHE") or Path.home() / ".cache" / "nerfbot"
+    return Path(base) / "bench-captures"
+
+
+def ensure_dataset(point: dict) -> Path:
+    """The dataset folder of ``point``: its ``data_path`` when it exists on this machine, else
+    (built-in scenes, e.g. on a Ray node without the driver's disk) a capture of the same spec
+    in :func:`capture_cache_dir`, made once per machine."""
+    path = Path(point["data_path"])
+    if path.exists():
+        return path
+    spec = point.get("capture")
+    if spec is None:
+        raise FileNotFoundError(f"{path}: dataset not found on {platform.node()}")
+    cached = capture_cache_dir() / Path(point["data_path"]).name
+    if not (cached / "transforms.json").exists():
+        capture_builtin(spec, cached)
+    return cached
+
+
+def _resize(img: Optional[np.ndarray], w: int, h: int, nearest: bool):
+    import cv2
+
+    if img is None:
+        return None
+    interp = cv2.INTER_NEAREST if nearest else cv2.INTER_AREA
+    if img.dtype == bool:
+        return cv2.resize(img.astype(np.uint8), (w, h), interpolation=interp).astype(bool)
+    return cv2.resize(img, (w, h), interpolation=interp)
+
+
+def downscale_dataset(ds, size: int):
+    """``ds`` with every frame resized so its longer side is ``size`` pixels (aspect kept);
+    frames already that small are kept. Colours use area averaging; depth, masks and
+    segmentation use the nearest pixel (no blending across surfaces). Intrinsics scale along."""
+    intr, sizes = ds.intrinsics.copy(), ds.sizes.copy()
+    lists = {k: list(getattr(ds, k)) for k in ("images", "alphas", "depths", "masks",
+                                               "segmentations", "sensor_depths")}
+    for i in range(len(ds)):
+        w, h = (int(v) for v in ds.sizes[i])
+        scale = size / max(w, h)
+        if scale >= 1.0:
+            continue
+        nw, nh = max(1, round(w * scale)), max(1, round(h * scale))
+        intr[i] *= [nw / w, nh / h, nw / w, nh / h]
+        sizes[i] = (nw, nh)
+        for key, items in lists.items():
+            if i < len(items):
+                items[i] = _resize(items[i], nw, nh, nearest=key not in ("images", "alphas"))
+    return replace(ds, intrinsics=intr, sizes=sizes, **lists)
+
+
+# -- memory ------------------------------------------------------------------------------------
+def _status_mb(field: str) -> Optional[float]:
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith(field + ":"):
+                return float(line.split()[1]) / 1024.0  # kB
+    except OSError:
+        pass
+    return None
+
+
+def reset_peak_rss() -> bool:
+    """Reset this process's RSS high-water mark to the current RSS (Linux); False if unsupported."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+        return _status_mb("VmHWM") is not None
+    except OSError:
+        return False
+
+
+def peak_rss_mb() -> float:
+    """Peak resident set size of this process, MB (since the last :func:`reset_peak_rss`)."""
+    hwm = _status_mb("VmHWM")
+    if hwm is not None:
+        return hwm
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / (1024.0 * 1024.0) if sys.platform == "darwin" else peak / 1024.0
+
+
+# -- the point ---------------------------------------------------------------------------------
+def _finite(v):
+    return None if v is None or (isinstance(v, float) and not math.isfinite(v)) else v
+
+
+def _chamfer(model, ds, settings: dict, seed: int) -> dict:
+    """Chamfer distance of the field's mesh to the capture's true geometry (see the bench docs)."""
+    from nerfbot.meshing import compare_meshes, field_mesh
+    from sims.geometry import capture_geometry
+
+    truth = capture_geometry(ds.manifest)
+    if truth is None:
+        return {"chamfer_note": "no ground-truth geometry (not a static sims capture)"}
+    gt, bounds = truth
+    t0 = time.perf_counter()
+    mesh = field_mesh(model, settings["mesh_resolution"], settings.get("mesh_threshold"),
+                      bounds=bounds)
+    idx = ds.indices("train")
+    cams = (ds.c2w[idx], ds.intrinsics[idx], ds.sizes[idx]) if settings.get("visible_only", True) \
+        else None
+    cmp = compare_meshes(mesh, gt, settings["chamfer_points"], bounds, cams, seed)
+    return {"chamfer_mm": _finite(cmp["chamfer_mm"]),
+            "chamfer_accuracy_mm": _finite(cmp["accuracy_mm"]),
+            "chamfer_completeness_mm": _finite(cmp["completeness_mm"]),
+            "mesh_faces": cmp["pred_faces"], "mesh_seconds": time.perf_counter() - t0,
+            **({} if cmp["pred_faces"] else {"chamfer_note": "empty mesh: no density reaches "
+                                                             "the threshold"})}
+
+
+def run_point(point: dict, run_dir: Path) -> dict:
+    """Train, evaluate and (optionally) mesh one point in this process; returns its result."""
+    import sims  # noqa: F401  (MUJOCO_GL before mujoco)
+    import torch
+
+    from nerfbot.data import load_dataset
+    from nerfbot.evaluation import evaluate
+    from nerfbot.models import num_params
+    from nerfbot.training import CHECKPOINT, TrainConfig, Trainer
+
+    t_start = time.perf_counter()
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    ds = load_dataset(ensure_dataset(point))
+    if point.get("size"):
+        ds = downscale_dataset(ds, int(point["size"]))
+    budget = point["budget"]
+    steps_budget = point["budget_kind"] == "steps"
+    config = TrainConfig(method=point["method"], seed=int(point["seed"]),
+                         max_steps=int(budget) if steps_budget else None,
+                         max_seconds=None if steps_budget else float(budget),
+                         options=dict(point["options"]), checkpoint_every_seconds=math.inf,
+                         progress=False)
+    scoped = reset_peak_rss()
+    rss_before = _status_mb("VmRSS")
+    trainer = Trainer(ds, run_dir, config)
+    summary = trainer.train()
+    metrics = evaluate(trainer.model, ds, "test", max_images=point.get("eval_images"))
+    peak = peak_rss_mb()
+    ms = metrics["render_ms_per_image"]
+    w, h = (int(v) for v in ds.sizes[0])
+    result = {
+        "key": point["key"], "status": "ok",
+        "steps": summary["steps"], "train_seconds": summary["train_seconds"],
+        "steps_per_second": summary["steps_per_second"],
+        "peak_rss_mb": peak, "rss_before_mb": rss_before,
+        "memory_scope": "train+eval" if scoped else "process",
+        "render_ms_per_image": ms, "render_fps": (1e3 / ms) if ms else None,
+        "psnr": _finite(metrics["psnr"]), "ssim": _finite(metrics["ssim"]),
+        "depth_mae_m": metrics["depth_mae_m"], "depth_rmse_m": metrics["depth_rmse_m"],
+        "num_params": num_params(trainer.model), "image_size": f"{w}x{h}",
+        "train_views": len(ds.indices("train")), "test_views": metrics["num_images"],
+        "torch_threads": torch.get_num_threads(), "host": platform.node(),
+    }
+    chamfer = point.get("chamfer")
+    if chamfer:
+        result.update(_chamfer(trainer.model, ds, chamfer, int(point["seed"])))
+    if not point.get("keep_checkpoint"):
+        (run_dir / CHECKPOINT).unlink(missing_ok=True)
+    result["point_seconds"] = time.perf_counter() - t_start
+    return result
+
+
+def run_point_dir(run_dir: Path) -> dict:
+    """Run the point in ``run_dir/point.json`` and write ``run_dir/result.json``."""
+    from nerfbot.data.writers import write_json_atomic
+
+    run_dir = Path(run_dir)
+    point = json.loads((run_dir / POINT_FILE).read_text())
+    result = run_point(point, run_dir)
+    write_json_atomic(run_dir / RESULT_FILE, result, allow_nan=True)
+    return result
+
+
+def run_point_elsewhere(point: dict, run_root: str) -> dict:
+    """A Ray task's body: run ``point`` in ``run_root/point["run_name"]`` (point.json and
+    result.json written as by the local executor) when this machine has ``run_root``, else in
+    a temporary folder, removed afterwards."""
+    import tempfile
+
+    root = Path(run_root)
+    if root.is_dir() and os.access(root, os.W_OK):
+        run_dir = root / point["run_name"]
+        run_dir.mkdir(parents=True, exist_ok=True)
+        (run_dir / POINT_FILE).write_text(json.dumps(point, indent=2))
+        return run_point_dir(run_dir)
+    tmp = Path(tempfile.mkdtemp(prefix="nerfbot-bench-"))
+    try:
+        return run_point(point, tmp)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if len(sys.argv) != 2:
+        sys.exit("usage: python -m nerfbot.bench_point RUN_DIR (holding point.json)")
+    run_point_dir(Path(sys.argv[1]))
