@@ -66,8 +66,16 @@ def cmd_train(args) -> int:
     from nerfbot.models import num_params
     from nerfbot.training import CHECKPOINT, TrainConfig, Trainer, write_json_atomic
 
-    if args.max_steps is None and args.max_seconds is None:
-        raise SystemExit("nerfbot train: give a budget, --max-steps N and/or --max-seconds S")
+    auto_goal = args.target_psnr is not None or args.time_budget is not None
+    if args.method != "auto" and (auto_goal or args.bench_table is not None):
+        raise SystemExit("nerfbot train: --target-psnr / --time-budget / --bench-table need "
+                         "--method auto")
+    if args.target_psnr is not None and args.time_budget is not None:
+        raise SystemExit("nerfbot train: give --target-psnr or --time-budget, not both")
+    if args.max_steps is None and args.max_seconds is None and not auto_goal:
+        raise SystemExit("nerfbot train: give a budget, --max-steps N and/or --max-seconds S"
+                         + (" (or, with --method auto, --target-psnr / --time-budget)"
+                            if args.method == "auto" else ""))
     out = Path(args.out)
     if (out / CHECKPOINT).exists() and not args.resume:
         raise SystemExit(f"{out} already holds a run; pass --resume to continue it, or choose "
@@ -76,9 +84,25 @@ def cmd_train(args) -> int:
     background = _parse_background(args.background)
     colour = None if background in (None, "learned") else background  # compositing colour
     ds = _load_dataset(args.data, aabb, colour)
-    config = TrainConfig(method=args.method, max_steps=args.max_steps,
-                         max_seconds=args.max_seconds, seed=args.seed, lr=args.lr,
-                         options=dict(args.option or []), background=background,
+    method, options, max_seconds = args.method, dict(args.option or []), args.max_seconds
+    if method == "auto":
+        from nerfbot.auto import auto_train_config
+
+        try:
+            choice = auto_train_config(ds.manifest, Path(args.data), out, options,
+                                       args.target_psnr, args.time_budget, args.bench_table)
+        except (ValueError, FileNotFoundError) as err:
+            raise SystemExit(f"nerfbot train --method auto: {err}")
+        method, options = choice.method, choice.options
+        if choice.budget_seconds is not None:
+            max_seconds = choice.budget_seconds
+        out.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(out / "auto.json", choice.to_dict())
+        for line in choice.reasons:
+            log.info("auto: %s", line)
+    config = TrainConfig(method=method, max_steps=args.max_steps,
+                         max_seconds=max_seconds, seed=args.seed, lr=args.lr,
+                         options=options, background=background,
                          eval_at_seconds=_floats(args.eval_at) if args.eval_at else (),
                          device=args.device, progress=not args.no_progress)
 
@@ -91,7 +115,7 @@ def cmd_train(args) -> int:
         log.info("resumed %s at step %d (%.1f s trained)", out, trainer.step, trainer.train_seconds)
     summary = trainer.train()
     metrics = evaluate(trainer.model, ds, "test")
-    metrics.update(method=args.method, num_params=num_params(trainer.model), **summary)
+    metrics.update(method=method, num_params=num_params(trainer.model), **summary)
     write_json_atomic(out / "metrics.json", metrics, allow_nan=True)
     print(json.dumps(metrics, indent=2))
     return 0
@@ -282,8 +306,17 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("train", help="train a radiance field on a dataset")
     p.add_argument("--data", required=True, type=Path, help="dataset folder or transforms JSON")
-    p.add_argument("--method", default="ngp", choices=sorted(METHODS),
-                   help="; ".join(f"{k}: {v.description}" for k, v in METHODS.items()))
+    p.add_argument("--method", default="ngp", choices=sorted(METHODS) + ["auto"],
+                   help="; ".join(f"{k}: {v.description}" for k, v in METHODS.items())
+                   + "; auto: model only what the scene manifest says it needs (see "
+                     "--target-psnr / --time-budget)")
+    p.add_argument("--target-psnr", type=float, default=None, metavar="DB",
+                   help="with --method auto: train for the shortest budget that reaches this "
+                        "test PSNR (from --bench-table, or a short built-in sweep)")
+    p.add_argument("--time-budget", type=float, default=None, metavar="S",
+                   help="with --method auto: the best configuration that trains within S s")
+    p.add_argument("--bench-table", type=Path, default=None,
+                   help="a `nerfbot bench` output (bench.json or its folder) to choose from")
     p.add_argument("--out", required=True, type=Path, help="run folder")
     p.add_argument("--max-steps", type=int, default=None, help="step budget")
     p.add_argument("--max-seconds", type=float, default=None,
