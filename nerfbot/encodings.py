@@ -94,6 +94,10 @@ def hash_encode_reference(x: torch.Tensor, table: torch.Tensor, offsets: torch.T
     Returns:
         (N, L * F) interpolated features, differentiable w.r.t. ``table`` and ``x``.
     """
+    if x.dtype in (torch.float16, torch.bfloat16):
+        # x * res in half precision is off by up to half a cell on fine levels (float16 spacing
+        # is 1 between 1024 and 2048): locate cells in float32
+        x = x.float()
     x = x.clamp(0.0, 1.0)
     feats = []
     for lvl in range(res.shape[0]):
@@ -158,8 +162,8 @@ class HashEncoding(nn.Module):
         log2_size: log2 of the maximum rows per level (the hash-table size T).
         min_res, max_res: cells per axis of the coarsest and finest level.
         backend: "numba" (fast CPU kernels) or "torch" (the reference twin). The numba path is
-            used only for float32 CPU inputs that do not require a gradient w.r.t. position;
-            anything else goes through the reference twin, which gives the same values.
+            used only for float32 CPU inputs without NaN that do not require a gradient w.r.t.
+            position; anything else goes through the reference twin, which gives the same values.
     """
 
     def __init__(self, n_levels: int = 16, n_features: int = 2, log2_size: int = 19,
@@ -182,8 +186,12 @@ class HashEncoding(nn.Module):
         return self.n_levels * self.n_features
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        # NaN positions must not reach the kernels: int(NaN) is -2^63 there, an out-of-bounds
+        # table row (read in the forward pass, written in the backward pass). The twin gives NaN
+        # features for them with in-bounds indexing.
         fast = (self.backend == "numba" and x.device.type == "cpu" and x.dtype == torch.float32
-                and self.table.dtype == torch.float32 and not x.requires_grad)
+                and self.table.dtype == torch.float32 and not x.requires_grad
+                and not bool(torch.isnan(x).any()))
         if fast:
             return _HashEncodeNumba.apply(x, self.table, self._offsets_np, self._res_np)
         return hash_encode_reference(x, self.table, self.offsets, self.res)

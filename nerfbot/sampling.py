@@ -21,13 +21,21 @@ def ray_aabb(origins: torch.Tensor, directions: torch.Tensor, aabb: torch.Tensor
         near: rays start no closer than this.
     Returns:
         t_near, t_far (R,) and hit (R,) bool. Rays that miss get t_near = t_far = near.
+        The box is closed: a ray lying in one of its faces hits it.
     """
-    safe = torch.where(directions.abs() < 1e-12, torch.full_like(directions, 1e-12), directions)
-    inv = 1.0 / safe
+    # A direction component below 1e-12 (parallel to a slab) bounds nothing when the origin is
+    # within that slab, faces included, and excludes the ray otherwise. (Dividing by a stand-in
+    # of +1e-12 instead made rays lying in a max face miss while those in a min face hit.)
+    parallel = directions.abs() < 1e-12
+    inv = 1.0 / torch.where(parallel, torch.ones_like(directions), directions)
     t0 = (aabb[0] - origins) * inv
     t1 = (aabb[1] - origins) * inv
-    t_near = torch.minimum(t0, t1).amax(-1).clamp_min(near)
-    t_far = torch.maximum(t0, t1).amin(-1)
+    in_slab = (origins >= aabb[0]) & (origins <= aabb[1])
+    inf = torch.full_like(t0, float("inf"))
+    lo = torch.where(parallel, torch.where(in_slab, -inf, inf), torch.minimum(t0, t1))
+    hi = torch.where(parallel, torch.where(in_slab, inf, -inf), torch.maximum(t0, t1))
+    t_near = lo.amax(-1).clamp_min(near)
+    t_far = hi.amin(-1)
     hit = t_far > t_near
     t_near = torch.where(hit, t_near, torch.full_like(t_near, near))
     t_far = torch.where(hit, t_far, t_near)
@@ -173,9 +181,10 @@ class OccupancyGrid(nn.Module):
               max_per_ray: int = 1 << 30) -> PackedSamples:
         """March rays from ``t_begin`` to ``t_far`` (R,) and emit samples in occupied cells.
 
-        Step rule ``dt = clamp(t * cone, dt_min, dt_max)`` (metres). CPU: numba kernels.
-        Other devices: :func:`march_reference`.
+        Step rule ``dt = clamp(t * cone, dt_min, dt_max)`` (metres), ``0 < dt_min <= dt_max``.
+        CPU: numba kernels. Other devices: :func:`march_reference`.
         """
+        _check_steps(dt_min, dt_max)
         if origins.device.type != "cpu":
             return march_reference(origins, directions, t_begin, t_far, self.occupied,
                                    self.cube_min, self.cell_size, dt_min, dt_max, cone, max_per_ray)
@@ -208,6 +217,7 @@ def march_reference(origins, directions, t_begin, t_far, occupied, cube_min, cel
     Marches all rays in lock-step, one step per iteration, so it is slow for long rays: use it
     for checks and for devices without the CPU kernels.
     """
+    _check_steps(dt_min, dt_max)
     g = occupied.shape[0]
     t = t_begin.double().clone()
     tf = t_far.double()
@@ -235,3 +245,10 @@ def march_reference(origins, directions, t_begin, t_far, occupied, cube_min, cel
     te = torch.cat(ends_l) if rays else torch.zeros(0, dtype=torch.float64)
     order = torch.sort(ray_idx, stable=True).indices  # group by ray, keep t order
     return PackedSamples(ray_idx[order], ts[order].float(), te[order].float(), t.float())
+
+
+def _check_steps(dt_min: float, dt_max: float) -> None:
+    """A step of 0 (or NaN) would march forever: require 0 < dt_min <= dt_max."""
+    if not 0.0 < dt_min <= dt_max:
+        raise ValueError(f"marching steps need 0 < dt_min <= dt_max, got dt_min={dt_min}, "
+                         f"dt_max={dt_max}")

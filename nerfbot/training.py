@@ -62,6 +62,8 @@ class TrainConfig:
             raise ValueError(f"max_steps must be >= 0, got {self.max_steps}")
         if self.max_seconds is not None and not self.max_seconds >= 0:
             raise ValueError(f"max_seconds must be >= 0, got {self.max_seconds}")
+        if self.lr is not None and not 0.0 < self.lr < math.inf:
+            raise ValueError(f"lr must be positive and finite, got {self.lr}")
 
 
 class PixelBank:
@@ -242,6 +244,15 @@ class Trainer:
         self.curve.append(entry)
         log.info("eval at %.1fs / step %d: %s", self.train_seconds, self.step, metrics)
 
+    def _check_finite_parameters(self) -> None:
+        """Raise FloatingPointError if any parameter is NaN or inf. The loss check of every step
+        catches a diverged model one step late; this catches the last step, before saving."""
+        bad = [name for name, p in self.model.named_parameters() if not torch.isfinite(p).all()]
+        if bad:
+            raise FloatingPointError(
+                f"non-finite parameters after step {self.step} ({', '.join(bad[:3])}); lower the "
+                f"learning rate (now {self.optimizer.param_groups[0]['lr']:.2e})")
+
     def train(self, on_step: Optional[Callable[["Trainer"], None]] = None) -> dict:
         """Run until a budget is spent. ``on_step(trainer)`` is called after every step (tests
         use it to simulate interruptions). On KeyboardInterrupt a checkpoint is written first."""
@@ -308,6 +319,7 @@ class Trainer:
             log.warning("interrupted at step %d; checkpoint %s (resume with --resume)", self.step, path)
             raise
         bar.close()
+        self._check_finite_parameters()
         self.save()
         return {"steps": self.step, "train_seconds": self.train_seconds,
                 "steps_per_second": self.step / max(self.train_seconds, 1e-9)}

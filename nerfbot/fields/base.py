@@ -9,20 +9,28 @@ import torch
 from torch import nn
 
 
+def _trunc_exp_limit(dtype: torch.dtype) -> float:
+    """Largest argument of :func:`trunc_exp`: 15, or 11 in float16, whose largest finite value
+    (65504) is below exp(15) = 3.3e6 (exp(11) = 6.0e4 fits)."""
+    return 11.0 if dtype == torch.float16 else 15.0
+
+
 class TruncExp(torch.autograd.Function):
     """exp(x) with its argument clamped to <= 15 in the forward pass and to [-15, 15] in the
     gradient (Instant-NGP's ``trunc_exp``): density stays finite (<= 3.3e6 /m) and gradients
-    never overflow, yet saturated densities still receive a gradient."""
+    never overflow, yet saturated densities still receive a gradient. In float16 the limit is
+    11 instead of 15 (see :func:`_trunc_exp_limit`)."""
 
     @staticmethod
     def forward(ctx, x):
         ctx.save_for_backward(x)
-        return torch.exp(x.clamp_max(15.0))
+        return torch.exp(x.clamp_max(_trunc_exp_limit(x.dtype)))
 
     @staticmethod
     def backward(ctx, grad):
         (x,) = ctx.saved_tensors
-        return grad * torch.exp(x.clamp(-15.0, 15.0))
+        limit = _trunc_exp_limit(x.dtype)
+        return grad * torch.exp(x.clamp(-limit, limit))
 
 
 def trunc_exp(x: torch.Tensor) -> torch.Tensor:
