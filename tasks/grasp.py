@@ -21,8 +21,9 @@ A trial is one randomised scene (scene seed = ``--seed`` + trial index). For eac
    gripper executes it in physics from the scene's resting state (:mod:`tasks.execute`).
    Success: the object is lifted by at least 10 cm and held for 2 s.
 
-Outputs in ``--out``: ``log.json`` (every attempt, its grasp and outcome), ``summary.json``, and
-one PNG per attempt (query view | the source's depth | the scene after the hold).
+Outputs in ``--out``: ``log.json`` (every attempt, its grasp and outcome), ``summary.json``,
+``success.png`` (success rate per object and source), and one PNG per attempt in ``trials/``
+(query view | the source's depth | the scene after the hold).
 """
 
 from __future__ import annotations
@@ -503,6 +504,9 @@ def run_experiment(cfg: GraspTaskConfig, sources: Sequence[str]) -> dict:
     write_json_atomic(out / "summary.json", {"config": _config_dict(cfg), "threshold": threshold,
                                              "calibration_seed": CALIBRATION_SEED
                                              if calibration else None, "sources": summaries})
+    plot_success(summaries, out / "success.png",
+                 title=f"{cfg.scene}, {cfg.trials} scenes (seeds {cfg.seed}-"
+                       f"{cfg.seed + cfg.trials - 1}): lifted 10 cm and held 2 s")
     return summaries
 
 
@@ -538,6 +542,34 @@ def summarize(attempts: list[Attempt], source: str, cfg: GraspTaskConfig,
         "scene": cfg.scene,
         "seeds": [cfg.seed, cfg.seed + cfg.trials - 1],
     }
+
+
+def plot_success(summaries: dict, path: Path, title: str = "") -> Path:
+    """PNG bar chart: success rate per object (rows grouped glass / opaque) for each source."""
+    from matplotlib.figure import Figure  # no pyplot: leaves the caller's backend alone
+
+    sources = list(summaries)
+    names = []
+    for s in sources:
+        names += [n for n in summaries[s]["per_object"] if n not in names]
+    fig = Figure(figsize=(max(6.0, 0.9 * len(names) + 2), 3.8))
+    ax = fig.subplots()
+    width = 0.8 / max(len(sources), 1)
+    for k, s in enumerate(sources):
+        rates = [100 * (summaries[s]["per_object"].get(n) or 0) for n in names]
+        ax.bar(np.arange(len(names)) + (k - (len(sources) - 1) / 2) * width, rates, width,
+               label=f"{s} (glass {100 * (summaries[s]['transparent_success_rate'] or 0):.0f} %, "
+                     f"opaque {100 * (summaries[s]['opaque_success_rate'] or 0):.0f} %)")
+    ax.set_xticks(np.arange(len(names)), [n.replace("_", " ") for n in names], rotation=30,
+                  ha="right", fontsize=8)
+    ax.set_ylabel("grasp success (%)")
+    ax.set_ylim(0, 140)  # headroom for the legend above the bars
+    ax.set_yticks(range(0, 101, 20))
+    ax.set_title(title or "lifted 10 cm and held 2 s", fontsize=10)
+    ax.legend(fontsize=7, loc="upper center", ncol=2, frameon=False)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    return Path(path)
 
 
 def format_table(summaries: dict) -> str:

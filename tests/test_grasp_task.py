@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from tasks.grasp import (DEPTH_SOURCES, Attempt, DepthContext, GraspTaskConfig, World,
-                         attempt_object, format_table, main, query_poses, select_objects,
-                         summarize)
+                         attempt_object, format_table, main, plot_success, query_poses,
+                         select_objects, summarize)
 from sims.sensor import DepthSensorModel
 
 
@@ -84,7 +84,7 @@ def test_select_objects_and_errors(world):
         select_objects(world.model, objects, glass, "glass_teapot")
 
 
-def test_summary_rates_and_table():
+def test_summary_rates_table_and_plot(tmp_path):
     attempts = [Attempt(0, 0, "glass_a", True, "gt", True, "lifted", 10),
                 Attempt(1, 1, "glass_a", True, "gt", False, "dropped (slipped)", 10),
                 Attempt(0, 0, "opaque_a", False, "gt", True, "lifted", 10)]
@@ -95,6 +95,8 @@ def test_summary_rates_and_table():
     assert s["failures"] == {"dropped": 1}
     table = format_table({"gt": s})
     assert "glass_a" in table and "50%" in table and "100%" in table
+    png = plot_success({"gt": s, "other": s}, tmp_path / "success.png")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_cli_rejects_unknown_sources_and_bad_trials(tmp_path, capsys):
