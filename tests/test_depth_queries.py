@@ -132,3 +132,26 @@ def test_best_threshold_needs_enough_valid_pixels():
     assert best_threshold(rows) == 10.0
     assert best_threshold(rows, min_valid=0.2) == 100.0
     assert best_threshold(rows[3:]) is None
+
+
+def test_pooled_sweeps_weight_by_pixels_with_a_prediction():
+    from nerfbot.depth_eval import DepthSweep, pool_sweeps
+
+    def sweep(mae, valid, pixels, n_images):
+        row = dict(mae_m=mae, rmse_m=2 * mae, valid_fraction=valid, pixels=pixels)
+        s = DepthSweep([10.0], num_images=n_images)
+        for c in ("transparent", "opaque_objects", "scene"):
+            s.modes[c] = {"expected": dict(row)}
+            s.threshold[c] = [dict(threshold=10.0, **row)]
+        return s
+
+    pooled = pool_sweeps([sweep(0.01, 1.0, 100, 2), sweep(0.04, 0.5, 200, 3)])
+    row = pooled.threshold["transparent"][0]
+    # 100 predicted pixels at 1 cm and 100 at 4 cm; 200 of 300 pixels have a depth
+    assert row["mae_m"] == pytest.approx(0.025)
+    assert row["rmse_m"] == pytest.approx(np.sqrt((100 * 0.02 ** 2 + 100 * 0.08 ** 2) / 200))
+    assert row["valid_fraction"] == pytest.approx(2 / 3) and row["pixels"] == 300
+    assert pooled.num_images == 5
+    assert pooled.best_threshold["transparent"] is None       # 67 % < the 80 % required
+    with pytest.raises(ValueError, match="share their thresholds"):
+        pool_sweeps([sweep(0.01, 1, 1, 1), DepthSweep([5.0])])
