@@ -455,7 +455,9 @@ def main(argv=None) -> int:
 
     try:
         return args.func(args)
-    except (DatasetError, FileNotFoundError, FileExistsError) as exc:
+    except (DatasetError, FileNotFoundError, FileExistsError, ValueError) as exc:
+        if args.verbose and isinstance(exc, ValueError):
+            raise  # bad input, or a bug: --verbose shows where
         print(f"nerfbot {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

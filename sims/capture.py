@@ -5,6 +5,10 @@ renamed into place only once complete, so ``out_dir`` is either absent/unchanged
 whole dataset (success). An existing ``out_dir`` is replaced only if it is empty or looks like a
 dataset (has a ``transforms*.json``), never an arbitrary folder.
 
+:func:`write_views` renders and writes any list of :class:`View` (pose, split, optional scene
+state, ``time`` and ``joints``) this way; :func:`capture` (static scenes), :mod:`sims.dynamic`
+(over time) and :mod:`sims.articulated` (over joint configurations) build their views and call it.
+
 Run as ``python -m sims.capture --scene tabletop --views 60 --test-views 10 --out DIR``.
 """
 
@@ -14,9 +18,9 @@ import logging
 import os
 import shutil
 import uuid
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Callable, Optional, Sequence
 
 import mujoco
 import numpy as np
@@ -77,6 +81,98 @@ def _scene_source(scene) -> str:
     return str(resolve_scene(scene))
 
 
+@dataclass
+class View:
+    """One image to render: where the camera is, in which state the scene is, and its labels.
+
+    Attributes:
+        split: "train", "val" or "test".
+        pose: (4, 4) c2w, OpenGL convention, metres.
+        qpos: (nq,) joint positions to set (then ``mj_forward``) before rendering; None keeps
+            the current state.
+        time: the frame's ``time`` in [0, 1], or None.
+        joints: the frame's ``joints`` (name -> position), or None.
+        where: how error messages name the view.
+    """
+
+    split: str
+    pose: np.ndarray
+    qpos: Optional[np.ndarray] = None
+    time: Optional[float] = None
+    joints: Optional[dict] = None
+    where: str = "view"
+
+
+def check_views(views: Sequence[View]) -> None:
+    """Validate every view's pose (``ValueError`` naming the view), before anything is written."""
+    for view in views:
+        nearest_rigid(view.pose, view.where)
+
+
+def write_views(model: mujoco.MjModel, data: mujoco.MjData, views: Sequence[View],
+                out_dir: Path, width: int, height: int, fov_deg: float, meta: dict,
+                fmt: str = "nerfstudio", manifest: bool = True, progress: bool = True,
+                sensor: Optional[DepthSensorModel] = None,
+                extra_files: Optional[Callable[[Path], None]] = None) -> Path:
+    """Render ``views`` of the compiled capture model and write them atomically to ``out_dir``.
+
+    Args:
+        model, data: from :func:`sims.scene.load_capture_model`; views that carry ``qpos``
+            change ``data`` (it is left in the last view's state).
+        views: the frames, in the order they are written.
+        width, height, fov_deg: image size (pixels) and vertical field of view (degrees).
+        meta: the scene manifest (written as ``scene`` unless ``manifest`` is False; its
+            ``transparent_geoms`` decide what the depth sensor sees through).
+        fmt, progress, sensor: as :func:`capture`.
+        extra_files: called with the (temporary) dataset folder before it is moved into place,
+            to add files of its own.
+
+    Returns:
+        ``out_dir`` as an absolute Path.
+    """
+    if fmt not in FORMATS:
+        raise ValueError(f"unknown dataset format '{fmt}' (choose from {FORMATS})")
+    if not views:
+        raise ValueError("nothing to capture: no views")
+    transparent_ids = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, name)
+                       for name in meta["transparent_geoms"]]
+    if sensor is not None:
+        meta["depth_sensor"] = sensor.to_dict()
+
+    out_dir = Path(out_dir).expanduser().absolute()
+    _check_destination(out_dir)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out_dir.with_name(f".{out_dir.name}.partial-{uuid.uuid4().hex[:8]}")
+    tmp.mkdir()
+    try:
+        with CaptureCamera(model, data, width, height, fov_deg) as cam:
+            k = cam.intrinsics
+            writer = open_writer(fmt, tmp, k.fx, k.fy, k.cx, k.cy, k.width, k.height)
+            bar = tqdm(views, desc=f"capture {meta['name']}", unit="view", disable=not progress)
+            for view_index, view in enumerate(bar):
+                if view.qpos is not None:
+                    data.qpos[:] = view.qpos
+                    mujoco.mj_forward(model, data)
+                frame = cam.render(view.pose, where=view.where)
+                sensor_depth = None
+                if sensor is not None:
+                    behind = cam.depth_without(transparent_ids) if transparent_ids else frame.depth
+                    glass = np.isin(frame.segmentation, transparent_ids)
+                    sensor_depth = sensor.read(behind, glass, view_index=view_index)
+                writer.add_frame(frame.rgb, frame.c2w, view.split, depth=frame.depth,
+                                 segmentation=frame.segmentation, time=view.time,
+                                 joints=view.joints, sensor_depth=sensor_depth)
+        writer.finish(meta if manifest else None)
+        if extra_files is not None:
+            extra_files(tmp)
+        _check_destination(out_dir)
+        _move_into_place(tmp, out_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out_dir
+
+
 def capture(scene: str | Path, rig: RigConfig, test_rig: Optional[RigConfig], out_dir: Path,
             size: Optional[int | Sequence[int]] = None, fmt: str = "nerfstudio",
             manifest: bool = True, progress: bool = True,
@@ -116,43 +212,15 @@ def capture(scene: str | Path, rig: RigConfig, test_rig: Optional[RigConfig], ou
 
     model, data = load_capture_model(scene)
     _warn_view_dependent_lighting(model)
-    views = [("train", i, p) for i, p in enumerate(rig_poses(rig))]
+    views = [View("train", p, where=f"train view {i}") for i, p in enumerate(rig_poses(rig))]
     if test_rig is not None and (test_rig.count > 0 or test_rig.kind == "explicit"):
-        views += [("test", i, p) for i, p in enumerate(rig_poses(test_rig))]
-    for split, i, pose in views:  # fail before writing anything
-        nearest_rigid(pose, f"{split} view {i}")
+        views += [View("test", p, where=f"test view {i}")
+                  for i, p in enumerate(rig_poses(test_rig))]
+    check_views(views)  # fail before writing anything
     meta = scene_manifest(model, data, resolve_scene(scene).stem, _scene_source(scene))
-    transparent_ids = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, name)
-                       for name in meta["transparent_geoms"]]
-    if sensor is not None:
-        meta["depth_sensor"] = sensor.to_dict()
-
-    out_dir = Path(out_dir).expanduser().absolute()
-    _check_destination(out_dir)
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_dir.with_name(f".{out_dir.name}.partial-{uuid.uuid4().hex[:8]}")
-    tmp.mkdir()
-    try:
-        with CaptureCamera(model, data, rig.width, rig.height, rig.fov_deg) as cam:
-            k = cam.intrinsics
-            writer = open_writer(fmt, tmp, k.fx, k.fy, k.cx, k.cy, k.width, k.height)
-            bar = tqdm(views, desc=f"capture {meta['name']}", unit="view", disable=not progress)
-            for view_index, (split, i, pose) in enumerate(bar):
-                frame = cam.render(pose, where=f"{split} view {i}")
-                sensor_depth = None
-                if sensor is not None:
-                    behind = cam.depth_without(transparent_ids) if transparent_ids else frame.depth
-                    glass = np.isin(frame.segmentation, transparent_ids)
-                    sensor_depth = sensor.read(behind, glass, view_index=view_index)
-                writer.add_frame(frame.rgb, frame.c2w, split, depth=frame.depth,
-                                 segmentation=frame.segmentation, sensor_depth=sensor_depth)
-        writer.finish(meta if manifest else None)
-        _check_destination(out_dir)
-        _move_into_place(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    n_test = sum(1 for v in views if v[0] == "test")
+    out_dir = write_views(model, data, views, out_dir, rig.width, rig.height, rig.fov_deg, meta,
+                          fmt=fmt, manifest=manifest, progress=progress, sensor=sensor)
+    n_test = sum(1 for v in views if v.split == "test")
     log.info("wrote %d views (%d train, %d test) of '%s' to %s", len(views), len(views) - n_test,
              n_test, meta["name"], out_dir)
     return out_dir

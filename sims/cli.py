@@ -2,6 +2,12 @@
 
 The ``nerfbot`` CLI calls :func:`add_capture_arguments` on its ``capture`` sub-parser and
 :func:`run_capture` on the parsed arguments.
+
+The scene decides the kind of capture (:func:`sims.sequence.capture_kind`): static scenes take
+the ``hemisphere`` / ``orbit`` / ``explicit`` rigs (:mod:`sims.capture`); ``dynamic`` scenes a
+``monocular`` or ``multiview`` rig over ``--frames`` time steps (:mod:`sims.dynamic`);
+``articulated`` scenes ``--configs`` joint configurations seen by ``--views-per-frame`` views
+each (:mod:`sims.articulated`). Options of one kind given to another are errors.
 """
 
 from __future__ import annotations
@@ -12,14 +18,22 @@ from pathlib import Path
 import mujoco
 
 from nerfbot.data.writers import FORMATS
+from sims import articulated as art
+from sims import dynamic as dyn
 from sims.capture import capture
 from sims.manifest import content_bounds, rendered_geoms
 from sims.rigs import RIG_KINDS, RigConfig, make_test_rig, parse_size, scene_rig_defaults
 from sims.scene import load_model
 from sims.sensor import DepthSensorModel
+from sims.sequence import CAMERA_PATHS, SEQUENCE_RIGS, scene_capture_kind, sequence_rig
 
 DEFAULT_VIEWS = 60
 DEFAULT_TEST_VIEWS = 10
+#: Views per time step (dynamic multiview) or per configuration (articulated multiview).
+DEFAULT_VIEWS_PER_FRAME = 4
+#: Options of captures over time / configurations (None = not given), by the kind they apply to.
+_DYNAMIC_OPTIONS = ("frames", "duration", "test_every", "camera_path")
+_ARTICULATED_OPTIONS = ("configs", "test_configs", "train_range")
 
 
 def add_capture_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -34,8 +48,12 @@ def add_capture_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentP
                              "file's test list)")
     parser.add_argument("--size", type=int, nargs="+", default=[128], metavar="N",
                         help="image size: N (square) or W H, pixels (default 128)")
-    parser.add_argument("--rig", choices=RIG_KINDS, default="hemisphere",
-                        help="camera rig (default hemisphere)")
+    parser.add_argument("--rig", choices=RIG_KINDS + SEQUENCE_RIGS, default=None,
+                        help="camera rig: hemisphere, orbit or explicit for static scenes "
+                             "(default hemisphere); monocular (one view per time step or "
+                             "configuration) or multiview (--views-per-frame views each) for "
+                             "dynamic (default monocular) and articulated (default multiview) "
+                             "scenes")
     parser.add_argument("--poses", type=Path, default=None,
                         help="JSON pose file of the explicit rig (4x4 matrices or eye/target)")
     parser.add_argument("--fov", type=float, default=None,
@@ -62,6 +80,32 @@ def add_capture_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentP
                              "'invalid' (no return); 'auto' = 'behind' when the scene has "
                              "transparent geoms, else off (default auto)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    seq = parser.add_argument_group("dynamic and articulated scenes")
+    seq.add_argument("--views-per-frame", type=int, default=None, metavar="K",
+                     help=f"multiview: cameras per time step / configuration (default "
+                          f"{DEFAULT_VIEWS_PER_FRAME}; monocular: 1)")
+    seq.add_argument("--frames", type=int, default=None, metavar="N",
+                     help=f"dynamic: time steps of the rollout (default {dyn.DEFAULT_FRAMES})")
+    seq.add_argument("--duration", type=float, default=None, metavar="S",
+                     help="dynamic: simulated seconds (default: the scene's, else "
+                          f"{dyn.DEFAULT_DURATION_S})")
+    seq.add_argument("--test-every", type=int, default=None, metavar="M",
+                     help=f"dynamic: hold out every M-th time step for the test split, from "
+                          f"step M // 2 (default {dyn.DEFAULT_TEST_EVERY}; 0 = no test split)")
+    seq.add_argument("--camera-path", choices=CAMERA_PATHS, default=None,
+                     help="dynamic monocular: the camera moves along a smooth spiral, or "
+                          "jumps to a random view every step as in D-NeRF (default spiral)")
+    seq.add_argument("--configs", type=int, default=None, metavar="N",
+                     help=f"articulated: training joint configurations (default "
+                          f"{art.DEFAULT_CONFIGS})")
+    seq.add_argument("--test-configs", type=int, default=None, metavar="M",
+                     help=f"articulated: held-out test configurations, half of them outside "
+                          f"the training range (default {art.DEFAULT_TEST_CONFIGS})")
+    seq.add_argument("--train-range", type=float, nargs=2, default=None, metavar=("LO", "HI"),
+                     help="articulated: training configurations stay within these fractions "
+                          "of each joint's range (default %g %g); extrapolating test "
+                          "configurations lie at least %g of the range outside them"
+                          % (*art.DEFAULT_TRAIN_RANGE, art.DEFAULT_MARGIN))
     return parser
 
 
@@ -81,14 +125,15 @@ def default_rig(scene: str | Path, **overrides) -> RigConfig:
 
 def rigs_from_args(args: argparse.Namespace) -> tuple[RigConfig, RigConfig | None]:
     """(train rig, test rig or None) from parsed capture arguments; ValueError if inconsistent."""
-    explicit = args.rig == "explicit"
+    kind = args.rig or "hemisphere"
+    explicit = kind == "explicit"
     if explicit and args.poses is None:
         raise ValueError("--rig explicit needs --poses FILE")
     views = args.views if args.views is not None else (0 if explicit else DEFAULT_VIEWS)
     test_views = (args.test_views if args.test_views is not None
                   else (0 if explicit else DEFAULT_TEST_VIEWS))
     width, height = parse_size(args.size)
-    rig = default_rig(args.scene, kind=args.rig, count=views, width=width, height=height,
+    rig = default_rig(args.scene, kind=kind, count=views, width=width, height=height,
                       fov_deg=args.fov, radius=args.radius,
                       target=tuple(args.target) if args.target else None,
                       elevation_range=tuple(args.elevation_range), elevation=args.elevation,
@@ -112,8 +157,59 @@ def sensor_from_arg(scene, mode: str, seed: int = 0) -> DepthSensorModel | None:
     return DepthSensorModel(transparent=mode, seed=seed)
 
 
+def _given(args: argparse.Namespace, names) -> list[str]:
+    return ["--" + n.replace("_", "-") for n in names if getattr(args, n, None) is not None]
+
+
+def check_capture_options(args: argparse.Namespace, kind: str) -> str:
+    """The rig of a ``kind`` scene ("static", "dynamic", "articulated") from ``args``
+    (defaults filled in); ValueError naming options that do not apply to it."""
+    scene = args.scene
+    if kind == "static":
+        if args.rig in SEQUENCE_RIGS:
+            raise ValueError(f"--rig {args.rig} captures dynamic and articulated scenes; scene "
+                             f"'{scene}' is static (its MJCF declares no <custom><text "
+                             "name=\"nerfbot_capture\" data=\"dynamic|articulated\"/>); use "
+                             f"--rig {', '.join(RIG_KINDS)}")
+        extra = _given(args, _DYNAMIC_OPTIONS + _ARTICULATED_OPTIONS + ("views_per_frame",))
+        if extra:
+            raise ValueError(f"{', '.join(extra)}: not options of static scenes like '{scene}' "
+                             "(they apply to dynamic / articulated scenes; use --views / "
+                             "--test-views)")
+        return args.rig or "hemisphere"
+    rig = args.rig or ("monocular" if kind == "dynamic" else "multiview")
+    if rig not in SEQUENCE_RIGS:
+        raise ValueError(f"scene '{scene}' is {kind}: capture it with --rig monocular or "
+                         f"multiview (--rig {rig} captures static scenes)")
+    extra = _given(args, ("views", "test_views", "poses"))
+    extra += ["--target-jitter"] if args.target_jitter else []
+    extra += _given(args, _ARTICULATED_OPTIONS if kind == "dynamic" else _DYNAMIC_OPTIONS)
+    if extra:
+        raise ValueError(f"{', '.join(extra)}: not options of {kind} scenes like '{scene}'")
+    if rig == "monocular" and args.views_per_frame not in (None, 1):
+        step = "time step" if kind == "dynamic" else "configuration"
+        raise ValueError(f"--rig monocular has one view per {step}; got --views-per-frame "
+                         f"{args.views_per_frame} (use --rig multiview)")
+    if rig == "multiview" and args.camera_path is not None:
+        raise ValueError("--camera-path applies to --rig monocular (multiview cameras are fixed)")
+    return rig
+
+
+def sequence_rig_from_args(args: argparse.Namespace, rig: str):
+    """The :class:`sims.sequence.SequenceRig` of a dynamic / articulated capture's ``args``."""
+    k = 1 if rig == "monocular" else (args.views_per_frame or DEFAULT_VIEWS_PER_FRAME)
+    return sequence_rig(args.scene, rig, views_per_step=k, size=args.size, fov_deg=args.fov,
+                        radius=args.radius, target=tuple(args.target) if args.target else None,
+                        elevation_range=tuple(args.elevation_range),
+                        camera_path=args.camera_path, seed=args.seed)
+
+
 def run_capture(args: argparse.Namespace) -> Path:
     """Capture the dataset described by ``args``; print where it went; return its folder."""
+    kind = scene_capture_kind(args.scene)
+    rig_kind = check_capture_options(args, kind)
+    if kind != "static":
+        return _run_sequence_capture(args, kind, rig_kind)
     rig, test = rigs_from_args(args)
     out = capture(args.scene, rig, test, args.out, fmt=args.format,
                   manifest=not args.no_manifest, progress=not args.no_progress,
@@ -121,6 +217,33 @@ def run_capture(args: argparse.Namespace) -> Path:
     n_train, n_test = _count_frames(out, args.format)
     print(f"wrote {n_train + n_test} frames ({n_train} train, {n_test} test) of "
           f"'{args.scene}' at {rig.width}x{rig.height} to {out} ({args.format})")
+    return out
+
+
+def _run_sequence_capture(args: argparse.Namespace, kind: str, rig_kind: str) -> Path:
+    rig = sequence_rig_from_args(args, rig_kind)
+    common = dict(fmt=args.format, manifest=not args.no_manifest,
+                  progress=not args.no_progress,
+                  sensor=sensor_from_arg(args.scene, args.sensor_depth, args.seed))
+    if kind == "dynamic":
+        steps = args.frames if args.frames is not None else dyn.DEFAULT_FRAMES
+        out = dyn.capture_dynamic(args.scene, rig, args.out, frames=steps,
+                                  duration_s=args.duration,
+                                  test_every=(args.test_every if args.test_every is not None
+                                              else dyn.DEFAULT_TEST_EVERY), **common)
+        what = f"{steps} time steps"
+    else:
+        steps = args.configs if args.configs is not None else art.DEFAULT_CONFIGS
+        tests = args.test_configs if args.test_configs is not None else art.DEFAULT_TEST_CONFIGS
+        out = art.capture_articulated(
+            args.scene, rig, args.out, configs=steps, test_configs=tests,
+            train_range=(tuple(args.train_range) if args.train_range is not None
+                         else art.DEFAULT_TRAIN_RANGE), **common)
+        what = f"{steps} + {tests} joint configurations"
+    n_train, n_test = _count_frames(out, args.format)
+    print(f"wrote {n_train + n_test} frames ({n_train} train, {n_test} test) of "
+          f"'{args.scene}' ({kind}, {rig_kind} rig, {rig.views_per_step} view(s) x {what}) at "
+          f"{rig.width}x{rig.height} to {out} ({args.format})")
     return out
 
 
