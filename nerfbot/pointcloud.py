@@ -8,10 +8,15 @@ half a pixel and the pose converted once, here.
 
 from __future__ import annotations
 
-from typing import Iterable, Optional
+from typing import TYPE_CHECKING, Iterable, Optional
 
 import numpy as np
-import open3d as o3d
+
+if TYPE_CHECKING:
+    import open3d as o3d
+
+# open3d is imported where it is used: depth_discontinuities serves sims' depth sensor, and a
+# capture should not pay for (or need the system libraries of) open3d.
 
 from nerfbot.cameras import opengl_to_opencv
 
@@ -33,6 +38,8 @@ def depth_discontinuities(depth: np.ndarray, rel_jump: float) -> np.ndarray:
 
 
 def _intrinsic(fx: float, fy: float, cx: float, cy: float, width: int, height: int):
+    import open3d as o3d
+
     return o3d.camera.PinholeCameraIntrinsic(int(width), int(height), float(fx), float(fy),
                                              float(cx) - 0.5, float(cy) - 0.5)
 
@@ -59,6 +66,8 @@ def depth_to_cloud(depth: np.ndarray, fx: float, fy: float, cx: float, cy: float
     Returns:
         An open3d PointCloud in world coordinates (metres).
     """
+    import open3d as o3d
+
     depth = np.asarray(depth, dtype=np.float32)
     if depth.ndim != 2:
         raise ValueError(f"depth must be (H, W), got shape {depth.shape}")
@@ -96,6 +105,8 @@ def depth_to_cloud(depth: np.ndarray, fx: float, fy: float, cx: float, cy: float
 def fuse_clouds(clouds: Iterable[o3d.geometry.PointCloud],
                 voxel: Optional[float] = None) -> o3d.geometry.PointCloud:
     """Merge clouds (keeping their normals), optionally voxel-downsampled (``voxel`` metres)."""
+    import open3d as o3d
+
     merged = o3d.geometry.PointCloud()
     for cloud in clouds:
         merged += cloud

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import importlib.resources
 import os
-import tempfile
 from pathlib import Path
 from typing import Callable
 
@@ -54,15 +53,9 @@ def generated_scene(family: str, seed: int) -> Path:
     path = scene_cache_dir() / f"{family}-{seed}.xml"
     if path.is_file() and path.read_text() == text:
         return path
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    from nerfbot.data.writers import default_file_mode
+    from nerfbot.data.writers import write_text_atomic
 
-    os.fchmod(fd, default_file_mode())
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
-    return path
+    return write_text_atomic(path, text)
 
 
 def resolve_scene(scene: str | Path) -> Path:

@@ -54,11 +54,19 @@ def json_default(o):
 
 
 def write_json_atomic(path: Path, obj, allow_nan: bool = False) -> Path:
-    """Write ``obj`` as JSON to ``path`` atomically: a temporary sibling file, then ``os.replace``.
+    """Write ``obj`` as JSON to ``path`` atomically (:func:`write_text_atomic`).
 
-    A reader never sees a partial file; on failure the previous file (if any) is untouched.
     Arrays, numpy / torch scalars and paths are converted (:func:`json_default`). ``allow_nan``
     permits NaN / Infinity (not strict JSON; Python's json reads them back).
+    """
+    text = json.dumps(obj, indent=2, allow_nan=allow_nan, default=json_default) + "\n"
+    return write_text_atomic(path, text)
+
+
+def write_text_atomic(path: Path, text: str) -> Path:
+    """Write ``text`` to ``path`` atomically: a temporary sibling file, then ``os.replace``.
+
+    A reader never sees a partial file; on failure the previous file (if any) is untouched.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -66,8 +74,7 @@ def write_json_atomic(path: Path, obj, allow_nan: bool = False) -> Path:
     try:
         os.fchmod(fd, default_file_mode())  # mkstemp's 0600 would hide datasets from other users
         with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump(obj, f, indent=2, allow_nan=allow_nan, default=json_default)
-            f.write("\n")
+            f.write(text)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
