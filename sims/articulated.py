@@ -42,9 +42,8 @@ from sims.joints import (JOINT_TYPES, body_rest_poses, joint_bodies, joint_id, j
                          set_joints)
 from sims.manifest import scene_manifest
 from sims.rollout import joint_name
-from sims.scene import load_capture_model, resolve_scene
 from sims.sensor import DepthSensorModel
-from sims.sequence import (SequenceRig, capture_kind, custom_text, state_arrays,
+from sims.sequence import (SequenceRig, load_sequence_scene, custom_text, state_arrays,
                            stratified_views, union_bounds)
 
 log = logging.getLogger(__name__)
@@ -220,12 +219,7 @@ def capture_articulated(scene: str | Path, rig: SequenceRig, out_dir: Path,
         ValueError: not an articulated scene or bad parameters (before anything is written);
             FileExistsError / RuntimeError as :func:`sims.capture.capture`.
     """
-    model, data = load_capture_model(scene)
-    name = resolve_scene(scene).stem
-    kind = capture_kind(model)
-    if kind != "articulated":
-        raise ValueError(f"scene '{scene}' is {kind}, not articulated (an articulated scene "
-                         "declares <custom><text name=\"nerfbot_capture\" data=\"articulated\"/>)")
+    model, data, name = load_sequence_scene(scene, "articulated")
     _warn_view_dependent_lighting(model)
     names = list(joints) if joints is not None else articulated_joints(model)
     schedule = config_schedule(model, names, configs, test_configs, train_range, margin,

@@ -32,9 +32,8 @@ from sims.capture import (View, _scene_source, _warn_view_dependent_lighting, ch
 from sims.joints import joint_bodies, joint_info
 from sims.manifest import scene_manifest
 from sims.rollout import moving_joints, reset_to_initial_state, rollout
-from sims.scene import load_capture_model, resolve_scene
 from sims.sensor import DepthSensorModel
-from sims.sequence import (SequenceRig, capture_kind, custom_numeric, fixed_ring, spiral_path,
+from sims.sequence import (SequenceRig, load_sequence_scene, custom_numeric, fixed_ring, spiral_path,
                            state_arrays, stratified_views, union_bounds)
 
 log = logging.getLogger(__name__)
@@ -113,12 +112,7 @@ def capture_dynamic(scene: str | Path, rig: SequenceRig, out_dir: Path,
         ValueError: not a dynamic scene, bad parameters, or a diverging rollout (before
             anything is written); FileExistsError / RuntimeError as :func:`sims.capture.capture`.
     """
-    model, data = load_capture_model(scene)
-    name = resolve_scene(scene).stem
-    kind = capture_kind(model)
-    if kind != "dynamic":
-        raise ValueError(f"scene '{scene}' is {kind}, not dynamic (a dynamic scene declares "
-                         "<custom><text name=\"nerfbot_capture\" data=\"dynamic\"/>)")
+    model, data, name = load_sequence_scene(scene, "dynamic")
     _warn_view_dependent_lighting(model)
     duration = scene_duration(model) if duration_s is None else float(duration_s)
     test_steps = held_out_steps(frames, test_every)

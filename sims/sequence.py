@@ -74,6 +74,19 @@ def capture_kind(model: mujoco.MjModel) -> str:
     return kind
 
 
+def load_sequence_scene(scene: str | Path, kind: str):
+    """(model, data, scene name) of a ``kind`` ("dynamic" or "articulated") scene, compiled with
+    the capture camera; ValueError if the scene declares another kind."""
+    from sims.scene import load_capture_model, resolve_scene
+
+    model, data = load_capture_model(scene)
+    actual = capture_kind(model)
+    if actual != kind:
+        raise ValueError(f"scene '{scene}' is {actual}, not {kind} (such a scene declares "
+                         f"<custom><text name=\"nerfbot_capture\" data=\"{kind}\"/>)")
+    return model, data, resolve_scene(scene).stem
+
+
 def scene_capture_kind(scene: str | Path) -> str:
     """:func:`capture_kind` of a scene name or MJCF path."""
     return capture_kind(load_model(scene))

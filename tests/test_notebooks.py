@@ -101,11 +101,15 @@ def test_stored_without_outputs(path):
     assert first_code.source.lstrip().startswith("import sims"), "sims must be imported first"
 
 
-def test_quickstart_runs_and_shows_plots(quickstart):
-    nb, _ = quickstart
+def _figures(nb) -> list:
+    """PNG figures an executed notebook displayed; fails on any error output."""
     outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.outputs]
     assert not [o for o in outputs if o.output_type == "error"]
-    figures = [o for o in outputs if o.output_type == "display_data" and "image/png" in o.data]
+    return [o for o in outputs if o.output_type == "display_data" and "image/png" in o.data]
+
+
+def test_quickstart_runs_and_shows_plots(quickstart):
+    figures = _figures(quickstart[0])
     # training images, camera rig, learning curve, comparison sheet, novel view
     assert len(figures) >= 5, f"expected at least 5 figures, got {len(figures)}"
 
@@ -149,10 +153,7 @@ def test_quickstart_depth_query(quickstart):
 
 
 def test_glass_tutorial_runs_and_shows_plots(glass):
-    nb, _ = glass
-    outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.outputs]
-    assert not [o for o in outputs if o.output_type == "error"]
-    figures = [o for o in outputs if o.output_type == "display_data" and "image/png" in o.data]
+    figures = _figures(glass[0])
     # capture (RGB / depths / glass mask), threshold sweep, depth modes, grasp sheets
     assert len(figures) >= 4, f"expected at least 4 figures, got {len(figures)}"
 
