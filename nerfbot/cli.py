@@ -53,6 +53,9 @@ def _run_data_path(run: Path) -> Path | None:
     return None
 
 
+#: Default gradient steps per start of ``nerfbot estimate-joints`` (JointEstimateConfig.steps).
+JOINT_STEPS = 60
+
 # -- commands --------------------------------------------------------------------------------
 def cmd_capture(args) -> int:
     from sims.cli import run_capture
@@ -162,6 +165,38 @@ def cmd_eval(args) -> int:
     return 0
 
 
+def cmd_estimate_joints(args) -> int:
+    from nerfbot.conditioning import Conditioning
+    from nerfbot.joint_estimation import JointEstimateConfig, evaluate_joint_estimation
+    from nerfbot.training import load_model
+
+    run = Path(args.run)
+    model, info = load_model(run, args.device)
+    data = Path(args.data) if args.data else _run_data_path(run)
+    if data is None:
+        raise SystemExit(f"{run}: no config.json naming the dataset; pass --data DIR")
+    ds = _load_dataset(data)
+    conditioning = Conditioning.from_dict(info["spec"].get("conditioning"))
+    cfg = JointEstimateConfig(steps=args.steps, seed=args.seed)
+    idx = ds.indices(args.split)[::args.every]
+    if args.max_images:
+        idx = idx[:args.max_images]
+    result = evaluate_joint_estimation(model, ds, conditioning, idx, config=cfg,
+                                       progress=not args.json and not args.no_progress)
+    result.update(method=info["spec"]["method"], split=args.split, data=str(data),
+                  num_images=len(idx))
+    if args.json:
+        print(json.dumps(result))
+    else:
+        for r in result["per_image"]:
+            errs = ", ".join(f"{n} {e:.2f} {result['units'][n]}" for n, e in r["error"].items())
+            print(f"{r['frame']}: {errs}")
+        for n, e in result["median_error"].items():
+            print(f"median error {n}: {e:.2f} {result['units'][n]} (mean "
+                  f"{result['mean_error'][n]:.2f})")
+    return 0
+
+
 def _orbit_cameras(model, frames: int, size, data: Path | None):
     """An orbit around the scene, framed like the training cameras when the dataset is known."""
     import numpy as np
@@ -186,6 +221,43 @@ def _orbit_cameras(model, frames: int, size, data: Path | None):
     return Cameras.pinhole(orbit_poses(target, radius, elevation, frames), fov, width, height)
 
 
+def _render_plan(args, model, info, data):
+    """Cameras and per-image conditions (or None) for ``nerfbot render``."""
+    import numpy as np
+    import torch
+
+    from nerfbot.conditioning import Conditioning, frame_conditions
+    from nerfbot.query import sweep_conditions
+
+    conditioning = Conditioning.from_dict(info["spec"].get("conditioning"))
+    fixed = None
+    if args.time is not None or args.joints:
+        fixed = conditioning.vector(args.time, args.joints)
+    if args.sweep:
+        if conditioning.is_static:
+            raise ValueError(f"{args.run}: --sweep needs a time- or joint-conditioned run; this "
+                             "one is static")
+        conds = sweep_conditions(conditioning, args.sweep, args.frames, fixed)
+        views = max(args.sweep_views, 1)
+        cams = _orbit_cameras(model, views, args.size, data)
+        return cams[torch.as_tensor(np.arange(len(conds)) * views // len(conds))], conds
+    if args.path == "orbit":
+        cams = _orbit_cameras(model, args.frames, args.size, data)
+        if fixed is None and not conditioning.is_static:
+            fixed = conditioning.vector(0.0, {}) if conditioning.kind == "time" else \
+                conditioning.vector(None, {})
+        return cams, [fixed] * len(cams)
+    if data is None:
+        raise SystemExit(f"{args.run}: no dataset known; pass --data DIR to render its "
+                         f"{args.path} views")
+    ds = _load_dataset(data)
+    idx = ds.indices(args.path)
+    per_frame = frame_conditions(ds, conditioning)
+    conds = [fixed if fixed is not None else (None if per_frame is None else per_frame[i].tolist())
+             for i in idx]
+    return ds.cameras(idx), conds
+
+
 def cmd_render(args) -> int:
     import numpy as np
 
@@ -195,17 +267,11 @@ def cmd_render(args) -> int:
     from tqdm.auto import tqdm
 
     run = Path(args.run)
-    model, _ = load_model(run, args.device)
+    model, info = load_model(run, args.device)
     data = Path(args.data) if args.data else _run_data_path(run)
-    if args.path == "orbit":
-        cams = _orbit_cameras(model, args.frames, args.size, data)
-    else:
-        if data is None:
-            raise SystemExit(f"{run}: no dataset known; pass --data DIR to render its {args.path} views")
-        ds = _load_dataset(data)
-        cams = ds.cameras(ds.indices(args.path))
+    cams, conds = _render_plan(args, model, info, data)
     out = Path(args.out)
-    images = (render_image(model, cams, i) for i in range(len(cams)))
+    images = (render_image(model, cams, i, cond=conds[i]) for i in range(len(cams)))
     images = tqdm(images, total=len(cams), desc="render", disable=args.no_progress)
     if out.suffix.lower() in (".mp4", ".avi"):
         def frames():
@@ -224,7 +290,8 @@ def cmd_render(args) -> int:
             save_image(out / f"depth_{i:04d}.png", colorize_depth(img["z_depth"], img["opacity"] > 0.5))
             save_image(out / f"opacity_{i:04d}.png", np.repeat(img["opacity"][..., None], 3, -1))
             np.save(out / f"depth_{i:04d}.npy", img["z_depth"].astype(np.float32))
-    print(f"wrote {len(cams)} {args.path} views to {out}")
+    what = f"a {args.sweep} sweep" if args.sweep else f"{args.path} views"
+    print(f"wrote {len(cams)} images of {what} to {out}")
     return 0
 
 
@@ -235,6 +302,19 @@ def cmd_demo(args) -> int:
                        test_views=args.test_views, seed=args.seed, progress=not args.no_progress)
     print(json.dumps(metrics, indent=2))
     return 0
+
+
+def _joint_values(text: str) -> dict[str, float]:
+    out = {}
+    for item in _str_list(text):
+        name, sep, value = item.partition("=")
+        try:
+            out[name.strip()] = float(value)
+        except ValueError:
+            sep = ""
+        if not sep or not name.strip():
+            raise argparse.ArgumentTypeError(f"expected NAME=VALUE, got {item!r}")
+    return out
 
 
 def _str_list(text: str) -> list[str]:
@@ -356,6 +436,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu")
     p.set_defaults(func=cmd_eval)
 
+    p = sub.add_parser("estimate-joints",
+                       help="estimate the joint configuration of each image of a split by "
+                            "inverse rendering, and its error against the truth")
+    p.add_argument("run", type=Path)
+    p.add_argument("--data", type=Path, default=None, help="dataset (default: the run's)")
+    p.add_argument("--split", default="test")
+    p.add_argument("--every", type=int, default=1, metavar="K",
+                   help="use every K-th image of the split (e.g. one view per configuration)")
+    p.add_argument("--max-images", type=int, default=None)
+    p.add_argument("--steps", type=int, default=JOINT_STEPS, help="gradient steps per start")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", action="store_true")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=cmd_estimate_joints)
+
     p = sub.add_parser("render", help="render views of a run: a video or images")
     p.add_argument("run", type=Path)
     p.add_argument("--path", default="orbit", choices=("orbit", "test", "train"))
@@ -370,6 +466,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", type=Path, default=None)
     p.add_argument("--device", default="cpu")
     p.add_argument("--no-progress", action="store_true")
+    cond = p.add_argument_group("dynamic and articulated runs")
+    cond.add_argument("--time", type=float, default=None, metavar="T",
+                      help="render at time T in [0, 1] (orbit; test/train views use their own)")
+    cond.add_argument("--joints", type=_joint_values, default=None, metavar="NAME=V,...",
+                      help="render at these joint positions (radians / metres; others at the "
+                           "middle of their range)")
+    cond.add_argument("--sweep", default=None, metavar="time|JOINT",
+                      help="a video over time, or over one joint's whole range (--frames "
+                           "images), seen from one orbit camera (or --sweep-views cameras)")
+    cond.add_argument("--sweep-views", type=int, default=1, metavar="K",
+                      help="--sweep: the camera moves through K orbit positions (default 1: "
+                           "a fixed camera)")
     p.set_defaults(func=cmd_render)
 
     p = sub.add_parser("demo", help="capture the tabletop, train ngp, evaluate, write renders")

@@ -7,6 +7,7 @@ import time
 import numpy as np
 import torch
 
+from nerfbot.conditioning import dataset_conditioning, frame_conditions
 from nerfbot.data.dataset import Dataset
 from nerfbot.metrics import depth_errors, psnr, ssim
 from nerfbot.models import Model
@@ -76,8 +77,9 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
     all_px, obj_px = _DepthErrorSum(), _DepthErrorSum()
     all_med, obj_med = _DepthErrorSum(), _DepthErrorSum()
     objects = object_geom_ids(dataset)
+    conds = frame_conditions(dataset, dataset_conditioning(dataset))
     for slot, i in enumerate(indices):
-        cond = None if dataset.times is None else [float(dataset.times[i])]
+        cond = None if conds is None else conds[i]
         t0 = time.perf_counter()
         out = render_image(model, cams, slot, cond=cond)
         times.append(time.perf_counter() - t0)

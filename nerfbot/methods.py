@@ -12,8 +12,12 @@ from typing import Callable
 import numpy as np
 
 from nerfbot.background import make_background
+from nerfbot.conditioning import Conditioning
+from nerfbot.fields.articulated import ArticulatedField, ArticulatedFieldConfig
+from nerfbot.fields.dnerf import DNeRFField, DNeRFFieldConfig
 from nerfbot.fields.nerf import NeRFField, NeRFFieldConfig
 from nerfbot.fields.ngp import NGPField, NGPFieldConfig
+from nerfbot.fields.tnerf import TNeRFField, TNeRFFieldConfig
 from nerfbot.models import (HierarchicalModel, HierarchicalModelConfig, Model, OccupancyModel,
                             OccupancyModelConfig)
 
@@ -23,7 +27,7 @@ class MethodSpec:
     """How to build and train one method.
 
     Attributes:
-        build: (aabb (2, 3), background spec, options dict, seed) -> Model.
+        build: (aabb (2, 3), background spec, options dict, seed, Conditioning) -> Model.
         lr: Adam learning rate.
         adam_eps: Adam epsilon (tiny for hash tables, as in Instant-NGP).
         lr_final_factor: the learning rate decays exponentially to lr * this at the end of the
@@ -47,16 +51,37 @@ def _apply(config, options: dict):
     return replace(config, **picked)
 
 
-def _build_ngp(aabb, background, options, seed) -> Model:
+def _build_ngp(aabb, background, options, seed, conditioning) -> Model:
     field = NGPField(aabb, _apply(NGPFieldConfig(), options), seed=seed)
     return OccupancyModel(field, make_background(background), aabb,
                           _apply(OccupancyModelConfig(), options))
 
 
-def _build_nerf(aabb, background, options, seed) -> Model:
+def _build_nerf(aabb, background, options, seed, conditioning) -> Model:
     cfg = _apply(NeRFFieldConfig(), options)
     return HierarchicalModel(NeRFField(aabb, cfg), NeRFField(aabb, cfg), make_background(background),
                              aabb, _apply(HierarchicalModelConfig(), options))
+
+
+def _build_tnerf(aabb, background, options, seed, conditioning) -> Model:
+    field = TNeRFField(aabb, conditioning, _apply(NGPFieldConfig(), options),
+                       _apply(TNeRFFieldConfig(), options), seed=seed)
+    return OccupancyModel(field, make_background(background), aabb,
+                          _apply(OccupancyModelConfig(), options))
+
+
+def _build_dnerf(aabb, background, options, seed, conditioning) -> Model:
+    field = DNeRFField(aabb, conditioning, _apply(NGPFieldConfig(), options),
+                       _apply(DNeRFFieldConfig(), options), seed=seed)
+    return OccupancyModel(field, make_background(background), aabb,
+                          _apply(OccupancyModelConfig(), options))
+
+
+def _build_articulated(aabb, background, options, seed, conditioning) -> Model:
+    field = ArticulatedField(aabb, conditioning, _apply(NGPFieldConfig(), options),
+                             _apply(ArticulatedFieldConfig(), options), seed=seed)
+    return OccupancyModel(field, make_background(background), aabb,
+                          _apply(OccupancyModelConfig(), options))
 
 
 METHODS: dict[str, MethodSpec] = {
@@ -66,6 +91,18 @@ METHODS: dict[str, MethodSpec] = {
     "nerf": MethodSpec(_build_nerf, lr=5e-4, adam_eps=1e-8, lr_final_factor=0.1,
                        description="vanilla NeRF, positional encoding, coarse + fine (reference)",
                        configs=(NeRFFieldConfig, HierarchicalModelConfig)),
+    "tnerf": MethodSpec(_build_tnerf, lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
+                        description="T-NeRF: time or joints as an extra input of an NGP field",
+                        configs=(NGPFieldConfig, TNeRFFieldConfig, OccupancyModelConfig)),
+    "dnerf": MethodSpec(_build_dnerf, lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
+                        description="D-NeRF: deformation (space-time planes) into a canonical "
+                                    "NGP field",
+                        configs=(NGPFieldConfig, DNeRFFieldConfig, OccupancyModelConfig)),
+    "articulated": MethodSpec(_build_articulated, lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
+                              description="one NGP field per rigid part, placed by forward "
+                                          "kinematics of the joints",
+                              configs=(NGPFieldConfig, ArticulatedFieldConfig,
+                                       OccupancyModelConfig)),
 }
 
 
@@ -81,11 +118,13 @@ def get_method(name: str) -> MethodSpec:
 
 
 def build_model(method: str, aabb, background="learned", options: dict | None = None,
-                seed: int = 0) -> Model:
-    """Build the model of ``method`` for a scene with bounds ``aabb`` (2, 3) metres."""
+                seed: int = 0, conditioning: Conditioning | None = None) -> Model:
+    """Build the model of ``method`` for a scene with bounds ``aabb`` (2, 3) metres and
+    ``conditioning`` (static when None; static methods ignore it)."""
     options = dict(options or {})
     unknown = set(options) - set(option_names(method))
     if unknown:
         raise ValueError(f"method {method!r} has no option(s) {sorted(unknown)}; "
                          f"known: {option_names(method)}")
-    return get_method(method).build(np.asarray(aabb, dtype=np.float32), background, options, seed)
+    return get_method(method).build(np.asarray(aabb, dtype=np.float32), background, options, seed,
+                                    conditioning or Conditioning())

@@ -99,6 +99,26 @@ def render_image(model: Model, cameras: Cameras, index: int, downscale: int = 1,
     return result
 
 
+def sweep_conditions(conditioning, what: str, n: int, base: Optional[Sequence[float]] = None
+                     ) -> list[list[float]]:
+    """``n`` condition vectors sweeping ``what`` ("time", or a joint name) over its whole range
+    (evenly, both ends included), the other values held at ``base`` (default: the middle of
+    their ranges). ValueError naming the choices for an unknown ``what``."""
+    names = list(conditioning.names)
+    if what not in names:
+        raise ValueError(f"cannot sweep {what!r}: this run is conditioned on {names or 'nothing'}")
+    base = list(base) if base is not None else conditioning.vector(0.0, {}) \
+        if conditioning.kind == "time" else conditioning.vector(None, {})
+    k = names.index(what)
+    lo, hi = conditioning.ranges[k]
+    out = []
+    for v in np.linspace(lo, hi, max(int(n), 2)):
+        c = list(base)
+        c[k] = float(v)
+        out.append(c)
+    return out
+
+
 def depth(model: Model, cameras: Cameras, index: int, mode: str = "expected",
           threshold: Optional[float | Sequence[float]] = None, z: bool = True,
           downscale: int = 1, cond=None) -> np.ndarray:

@@ -16,6 +16,7 @@ import torch
 from tqdm.auto import tqdm
 
 from nerfbot.cameras import Rays, pixel_rays
+from nerfbot.conditioning import Conditioning, dataset_conditioning, frame_conditions
 from nerfbot.data.dataset import Dataset
 from nerfbot.data.writers import write_json_atomic
 from nerfbot.methods import build_model, get_method
@@ -73,7 +74,8 @@ class PixelBank:
     per-frame offsets, so mixed image sizes work and rays are built only for drawn pixels.
     """
 
-    def __init__(self, dataset: Dataset, indices: list[int], device="cpu"):
+    def __init__(self, dataset: Dataset, indices: list[int], device="cpu",
+                 conditions: Optional[np.ndarray] = None):
         if not indices:
             raise ValueError(f"{dataset.root}: the training split is empty")
         self.device = torch.device(device)
@@ -84,8 +86,9 @@ class PixelBank:
         counts = torch.as_tensor([dataset.images[i].shape[0] * dataset.images[i].shape[1]
                                   for i in indices], dtype=torch.long)
         self.offsets = torch.cat([torch.zeros(1, dtype=torch.long), torch.cumsum(counts, 0)]).to(device)
-        self.times = None if dataset.times is None else \
-            torch.as_tensor(dataset.times[indices], dtype=torch.float32, device=device)
+        self.conds = None if conditions is None else \
+            torch.as_tensor(conditions[indices], dtype=torch.float32, device=device)
+        """(frames, C) condition vector of each frame (time or joints), None when static."""
 
     def __len__(self) -> int:
         return int(self.offsets[-1])
@@ -124,12 +127,13 @@ def model_spec(config: TrainConfig, dataset: Dataset) -> dict:
     """Everything needed to rebuild the model without the dataset (stored in checkpoints)."""
     background = config.background if config.background is not None else dataset.background
     return {"method": config.method, "aabb": np.asarray(dataset.aabb, float).tolist(),
-            "background": background, "options": dict(config.options), "seed": config.seed}
+            "background": background, "options": dict(config.options), "seed": config.seed,
+            "conditioning": dataset_conditioning(dataset).to_dict()}
 
 
 def build_from_spec(spec: dict, device="cpu") -> Model:
     return build_model(spec["method"], spec["aabb"], spec["background"], spec["options"],
-                       spec["seed"]).to(device)
+                       spec["seed"], Conditioning.from_dict(spec.get("conditioning"))).to(device)
 
 
 def warm_up_kernels() -> None:
@@ -142,6 +146,7 @@ def warm_up_kernels() -> None:
     out = np.empty((2, 8, 2), np.float32)
     hashgrid.hash_forward(x, table, off, res, out, 1)
     hashgrid.hash_backward(x, out, off, res, table, 1)
+    hashgrid.hash_backward_input(x, table, out, off, res, np.empty_like(x), 1)
     occ = np.ones((2, 2, 2), np.uint8)
     t = np.zeros(8, np.float32)
     counts, stop = np.empty(8, np.int64), np.empty(8, np.float32)
@@ -177,7 +182,9 @@ class Trainer:
         self.lr = config.lr if config.lr is not None else self.method.lr
         self.optimizer = torch.optim.Adam(self.model.param_groups(), lr=self.lr, betas=(0.9, 0.99),
                                           eps=self.method.adam_eps)
-        self.bank = PixelBank(dataset, dataset.indices("train"), self.device)
+        conditioning = Conditioning.from_dict(self.spec["conditioning"])
+        self.bank = PixelBank(dataset, dataset.indices("train"), self.device,
+                              frame_conditions(dataset, conditioning))
         self.model.init_mean_color(self.bank.mean_color())
         self.generator = torch.Generator().manual_seed(config.seed)
         self.step = 0
@@ -278,7 +285,7 @@ class Trainer:
                 upkeep = self.model.before_step(self.step, self.generator)
                 self.n_rays = self.model.rays_for_next_batch(self.last_samples, self.n_rays)
                 rays, target, slot = self.bank.sample(self.n_rays, self.generator)
-                cond = None if self.bank.times is None else self.bank.times[slot][:, None]
+                cond = None if self.bank.conds is None else self.bank.conds[slot]
                 loss, out = self.model.loss(rays, target, self.generator, cond)
                 self.optimizer.zero_grad(set_to_none=True)
                 if not torch.isfinite(loss):

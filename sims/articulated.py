@@ -19,7 +19,8 @@ Configuration schedule (:func:`config_schedule`), per joint of span ``hi - lo``:
 
 Every frame carries ``joints`` {name: position} (radians / metres). The manifest lists
 ``moving_joints``, ``joint_bodies``, ``joint_info`` (type, axis, anchor, range, ...; see
-:func:`sims.joints.joint_info`), ``joint_train_range`` {name: [lo, hi]}, ``body_rest_poses`` of
+:func:`sims.joints.joint_info`), ``part_bounds`` (the rigid parts and their rest bounds, see
+:func:`sims.joints.rigid_parts`), ``joint_train_range`` {name: [lo, hi]}, ``body_rest_poses`` of
 the moved bodies, and ``capture`` (with each test configuration and the joints it holds
 outside the training range); ``time_varying`` is false. ``states.npz`` holds the body poses of
 every configuration (see :func:`capture_articulated`).
@@ -39,7 +40,7 @@ import numpy as np
 from sims.capture import (View, _scene_source, _warn_view_dependent_lighting, check_views,
                           write_views)
 from sims.joints import (JOINT_TYPES, body_rest_poses, joint_bodies, joint_id, joint_info,
-                         set_joints)
+                         rigid_parts, set_joints)
 from sims.manifest import scene_manifest
 from sims.rollout import joint_name
 from sims.sensor import DepthSensorModel
@@ -250,6 +251,7 @@ def capture_articulated(scene: str | Path, rig: SequenceRig, out_dir: Path,
     bodies = joint_bodies(model, names)
     meta["joint_bodies"] = bodies
     meta["joint_info"] = joint_info(model, names)
+    meta["part_bounds"] = rigid_parts(model, names)
     meta["joint_train_range"] = {n: schedule.train_range[i].tolist() for i, n in enumerate(names)}
     meta["body_rest_poses"] = body_rest_poses(model, sorted({b for v in bodies.values()
                                                              for b in v}))

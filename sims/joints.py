@@ -132,3 +132,37 @@ def set_joints(model: mujoco.MjModel, qpos: np.ndarray, values: dict[str, float]
                              "take a single position")
         out[int(model.jnt_qposadr[j])] = float(value)
     return out
+
+
+def rigid_parts(model: mujoco.MjModel, names: Iterable[str]) -> list[dict]:
+    """The rigid parts the joints ``names`` define, for fields that move one sub-field per part.
+
+    Bodies moved by the same set of these joints form one part. Each part is a dict with
+    ``joints`` (the joints that move it, outermost first: apply the innermost first to go from
+    the rest pose to the current one), ``bodies`` and ``bounds`` [[min], [max]]: the world AABB of
+    its rendered geoms at the rest configuration ``qpos0`` (metres). Bodies no joint moves (the
+    static part) are not listed. Parts without rendered geoms are dropped.
+    """
+    from sims.manifest import content_bounds, rendered_geoms
+
+    names = [str(n) for n in names]
+    moved = {n: set(joint_bodies(model, [n])[n]) for n in names}
+    # outer joints move more bodies than the joints nested inside them
+    order = sorted(names, key=lambda n: -len(moved[n]))
+    groups: dict[tuple, list[str]] = {}
+    for b in range(model.nbody):
+        bname = body_name(model, b)
+        chain = tuple(n for n in order if bname in moved[n])
+        if chain:
+            groups.setdefault(chain, []).append(bname)
+    rest = _rest_data(model)
+    drawn = {int(g.objid) for g in rendered_geoms(model, rest)}
+    parts = []
+    for chain, bodies in groups.items():
+        ids = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, bn) for bn in bodies]
+        geoms = [g for g in sorted(drawn) if int(model.geom_bodyid[g]) in ids]
+        if not geoms:
+            continue
+        box = content_bounds(model, rest, geoms)
+        parts.append({"joints": list(chain), "bodies": bodies, "bounds": box.tolist()})
+    return parts

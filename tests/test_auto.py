@@ -36,11 +36,12 @@ def test_glass_keeps_faint_density_and_defaults_to_threshold_depth():
     assert c.query_defaults == {"depth_mode": "threshold"}
 
 
-def test_dynamic_scene_needs_a_conditioned_method():
-    with pytest.raises(ValueError, match="time-varying.*dnerf"):
-        choose_from_manifest(_manifest(time_varying=True))
-    with pytest.raises(ValueError, match="articulated"):
-        choose_from_manifest(_manifest(moving_joints=["door"]))
+def test_changing_scenes_get_a_conditioned_method():
+    c = choose_from_manifest(_manifest(time_varying=True, moving_joints=["ball_free"]))
+    assert (c.method, c.conditioning) == ("dnerf", "time")
+    c = choose_from_manifest(_manifest(moving_joints=["door"]))
+    assert (c.method, c.conditioning) == ("articulated", "joints")
+    assert "sh_degree" not in c.options
 
 
 def test_no_manifest_is_the_plain_default():

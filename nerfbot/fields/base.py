@@ -60,6 +60,18 @@ class Field(nn.Module, metaclass=abc.ABCMeta):
         sigma, feat = self.density(x, cond)
         return sigma, self.color(feat, d, cond)
 
+    def occupancy_density(self, x: torch.Tensor, generator: Optional[torch.Generator] = None
+                          ) -> torch.Tensor:
+        """x: (N, 3) -> (N,) density for occupancy-grid updates: a cell must count as occupied
+        if it is occupied under *any* condition. Static fields: :meth:`density`. Conditioned
+        fields draw conditions at random over their whole range (each update a new draw; the
+        grid keeps a decaying maximum over updates)."""
+        return self.density(x)[0]
+
+    def regularizer(self) -> Optional[torch.Tensor]:
+        """A scalar added to the training loss (e.g. smoothness of a space-time grid), or None."""
+        return None
+
     def init_mean_color(self, rgb: torch.Tensor) -> None:
         """Start predicting the colour ``rgb`` (3,) in (0, 1) everywhere (before training).
 

@@ -14,7 +14,9 @@ two agree. Both use the same grid arithmetic:
 Loops run level-major: one level's table (a few MB at most) stays in cache while all points
 are looked up in it (3x faster here than point-major loops), features are laid out (L, N, F) so
 each level writes contiguously, and in the backward pass each level's rows are written by one
-worker only, so the scatter-add needs no atomics and is deterministic.
+worker only, so the scatter-add needs no atomics and is deterministic. The gradient w.r.t. the
+positions (:func:`hash_backward_input`) is parallel over blocks of points instead (each point is
+written by one worker), each block still visited level by level.
 """
 
 from __future__ import annotations
@@ -133,6 +135,71 @@ def hash_backward(x, grad_out, offsets, res, grad_table, n_threads):
                     g = grad_out[lvl, n, f]
                     for c in range(8):
                         grad_table[off + rows[c], f] += ws[c] * g
+
+
+@njit(parallel=True, fastmath=True, cache=True, nogil=True)
+def hash_backward_input(x, table, grad_out, offsets, res, grad_x, n_threads):
+    """d(loss)/d(position) of every point into ``grad_x`` (N, 3), overwritten.
+
+    Args:
+        x: (N, 3) float32 positions as given to :func:`hash_forward` (clamped by the caller).
+        table: (rows, F) float32 feature table of all levels.
+        grad_out: (L, N, F) float32 gradient of the loss w.r.t. the forward output.
+        grad_x: (N, 3) float32, overwritten.
+        n_threads: points are split into this many contiguous blocks, one per worker; each
+            worker runs its block level by level (one level's table in cache at a time).
+
+    Per level, with ``pos = x * res`` and the weights of :func:`_corner_weights`, the derivative
+    is ``res * sum_c (grad_out . table[row_c]) * d(weight_c)/d(w)``, taken inside the cell
+    :func:`hash_forward` uses (``min(floor(pos), res - 1)``): on a cell face, where the
+    interpolation is continuous but not differentiable, that is the one-sided derivative from
+    the upper cell (from the lower one at x = 1), as in the autograd of the torch twin. This is
+    the gradient w.r.t. the clamped position: the caller zeroes the coordinates the clamp
+    changed. Each point is written by one worker only, levels in a fixed order: deterministic.
+    """
+    n_points = x.shape[0]
+    n_levels = res.shape[0]
+    n_feat = table.shape[1]
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    block = (n_points + n_threads - 1) // n_threads
+    for tid in prange(n_threads):
+        start = tid * block
+        stop = min(start + block, n_points)
+        for n in range(start, stop):
+            grad_x[n, 0] = zero
+            grad_x[n, 1] = zero
+            grad_x[n, 2] = zero
+        for lvl in range(n_levels):
+            r, rf, res1, off, size, dense = _level(res, offsets, lvl)
+            for n in range(start, stop):
+                ix, iy, iz, wx, wy, wz = _cell(x, n, rf, r)
+                rows = _corner_rows(ix, iy, iz, res1, size - 1, dense)
+                # s_c = grad_out . table[row_c]: the loss's sensitivity to corner c's weight
+                s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = zero
+                for f in range(n_feat):
+                    g = grad_out[lvl, n, f]
+                    s0 += g * table[off + rows[0], f]
+                    s1 += g * table[off + rows[1], f]
+                    s2 += g * table[off + rows[2], f]
+                    s3 += g * table[off + rows[3], f]
+                    s4 += g * table[off + rows[4], f]
+                    s5 += g * table[off + rows[5], f]
+                    s6 += g * table[off + rows[6], f]
+                    s7 += g * table[off + rows[7], f]
+                ux = one - wx
+                uy = one - wy
+                uz = one - wz
+                # corner c = (c & 1, c >> 1 & 1, c >> 2): pairs differing in one axis
+                dx = ((s1 - s0) * uy * uz + (s3 - s2) * wy * uz
+                      + (s5 - s4) * uy * wz + (s7 - s6) * wy * wz)
+                dy = ((s2 - s0) * ux * uz + (s3 - s1) * wx * uz
+                      + (s6 - s4) * ux * wz + (s7 - s5) * wx * wz)
+                dz = ((s4 - s0) * ux * uy + (s5 - s1) * wx * uy
+                      + (s6 - s2) * ux * wy + (s7 - s3) * wx * wy)
+                grad_x[n, 0] += rf * dx
+                grad_x[n, 1] += rf * dy
+                grad_x[n, 2] += rf * dz
 
 
 def level_layout(n_levels: int, log2_size: int, min_res: int, max_res: int) -> tuple[np.ndarray, np.ndarray]:
