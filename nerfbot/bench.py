@@ -43,6 +43,8 @@ __all__ = ["BenchConfig", "BenchError", "EXECUTORS", "pareto_front", "run_bench"
            "parse_option_sweep", "summarize"]
 
 BUILTIN_SIZE = 128
+#: The pseudo-method whose points train what ``--method auto`` picks from each scene's manifest.
+AUTO = "auto"
 #: Metrics of a run that are medians in the summary, in table order.
 METRICS = ("psnr", "ssim", "depth_mae_m", "depth_rmse_m", "chamfer_mm", "chamfer_accuracy_mm",
            "chamfer_completeness_mm", "train_seconds", "steps", "steps_per_second",
@@ -192,13 +194,15 @@ def validate(cfg: BenchConfig) -> None:
     if not cfg.methods:
         raise BenchError("no methods given")
     for m in cfg.methods:
-        if m not in METHODS:
-            raise BenchError(f"unknown method {m!r}; available: {', '.join(sorted(METHODS))}")
+        if m not in METHODS and m != AUTO:
+            raise BenchError(f"unknown method {m!r}; available: {', '.join(sorted(METHODS))}, "
+                             f"{AUTO}")
     if len(set(cfg.methods)) != len(cfg.methods):
         raise BenchError(f"a method is listed twice: {','.join(cfg.methods)}")
+    named = [m for m in cfg.methods if m != AUTO]
     for key in cfg.options:
-        if not any(key in option_names(m) for m in cfg.methods):
-            known = "; ".join(f"{m}: {', '.join(option_names(m))}" for m in cfg.methods)
+        if not any(key in option_names(m) for m in named):
+            known = "; ".join(f"{m}: {', '.join(option_names(m))}" for m in named)
             raise BenchError(f"--option {key}: none of the methods ({', '.join(cfg.methods)}) "
                              f"has this option (known: {known})")
     if cfg.budget_kind not in ("seconds", "steps"):
@@ -239,7 +243,10 @@ def expand_points(cfg: BenchConfig, sources: list[Source]) -> list[dict]:
         spec = capture_spec(cfg, src.builtin, size) if src.builtin else None
         data_path = capture_folder(cfg, spec) if spec else src.path
         capture_id = None if spec is None else f"{spec['views']}v{spec['test_views']}t-seed{spec['seed']}"
-        keys = [k for k in cfg.options if k in option_names(method)]
+        # auto decides its own options from the scene manifest: it takes the fixed settings
+        # (options given one value) but is never swept
+        keys = [k for k in cfg.options if len(cfg.options[k]) == 1] if method == AUTO else \
+            [k for k in cfg.options if k in option_names(method)]
         values = [list({json.dumps(v): v for v in cfg.options[k]}.values()) for k in keys]
         for combo in itertools.product(*values):
             options = dict(zip(keys, combo))
@@ -325,6 +332,9 @@ def summarize(points: list[dict], runs: dict) -> list[dict]:
                "options": ";".join(f"{k}={v}" for k, v in p["options"].items()),
                **{f"option_{k}": p["options"].get(k) for k in option_keys},
                "repeats": len(results)}
+        if p["method"] == AUTO:  # show what auto picked
+            row["method"] = f"{AUTO}:{results[0].get('auto_method')}"
+            row["options"] = results[0].get("auto_options", "")
         for m in METRICS:
             row[m] = _median([r.get(m) for r in results])
             if m in COUNT_METRICS and row[m] is not None:
@@ -341,6 +351,14 @@ def summarize(points: list[dict], runs: dict) -> list[dict]:
         for r, a, b in zip(mine, pareto_front([r["train_seconds"] for r in mine], psnr, True),
                            pareto_front([r["render_fps"] for r in mine], psnr, False)):
             r["pareto_train_time"], r["pareto_render_fps"] = a, b
+        others = [r for r in mine if not r["method"].startswith(AUTO) and r["psnr"] is not None]
+        best = max(others, key=lambda r: r["psnr"], default=None)
+        for r in mine:
+            if r["method"].startswith(AUTO) and best is not None and r["psnr"] is not None:
+                # --method auto against the best other configuration of the sweep
+                r["psnr_gap_to_best"] = best["psnr"] - r["psnr"]
+                r["best_config"] = f"{best['method']} {best['options']}".strip()
+                r["best_train_seconds"] = best["train_seconds"]
     return rows
 
 

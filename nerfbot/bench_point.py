@@ -37,13 +37,29 @@ POINT_FILE, RESULT_FILE, LOG_FILE = "point.json", "result.json", "log.txt"
 # -- datasets ----------------------------------------------------------------------------------
 def capture_builtin(spec: dict, out: Path, progress: bool = False) -> Path:
     """Capture built-in scene ``spec["scene"]`` at ``spec["size"]`` pixels (square) with
-    ``spec["views"]`` train and ``spec["test_views"]`` test views (rig seed ``spec["seed"]``)."""
+    ``spec["views"]`` train and ``spec["test_views"]`` test views (rig seed ``spec["seed"]``).
+    Dynamic and articulated scenes are captured over time / joint configurations with their
+    capture defaults (a monocular rollout; 4 views per configuration), as ``nerfbot capture``
+    does; ``views`` / ``test_views`` apply to static scenes only."""
     import sims  # noqa: F401  (MUJOCO_GL before mujoco)
     from sims.capture import capture
     from sims.cli import default_rig
     from sims.rigs import make_test_rig
+    from sims.sequence import scene_capture_kind, sequence_rig
 
     size = int(spec["size"])
+    kind = scene_capture_kind(spec["scene"])
+    if kind == "dynamic":
+        from sims.dynamic import capture_dynamic
+
+        rig = sequence_rig(spec["scene"], "monocular", size=size, seed=int(spec["seed"]))
+        return capture_dynamic(spec["scene"], rig, Path(out), progress=progress)
+    if kind == "articulated":
+        from sims.articulated import DEFAULT_VIEWS_PER_CONFIG, capture_articulated
+
+        rig = sequence_rig(spec["scene"], "multiview", DEFAULT_VIEWS_PER_CONFIG, size=size,
+                           seed=int(spec["seed"]))
+        return capture_articulated(spec["scene"], rig, Path(out), progress=progress)
     rig = default_rig(spec["scene"], count=int(spec["views"]), width=size, height=size,
                       seed=int(spec["seed"]))
     test = make_test_rig(rig, int(spec["test_views"])) if spec["test_views"] > 0 else None
@@ -181,10 +197,21 @@ def run_point(point: dict, run_dir: Path) -> dict:
         ds = downscale_dataset(ds, int(point["size"]))
     budget = point["budget"]
     steps_budget = point["budget_kind"] == "steps"
-    config = TrainConfig(method=point["method"], seed=int(point["seed"]),
+    method, options, resolved = point["method"], dict(point["options"]), {}
+    if method == "auto":  # what `nerfbot train --method auto` picks for this scene
+        from nerfbot.auto import choose_from_manifest
+
+        from nerfbot.methods import option_names
+
+        choice = choose_from_manifest(ds.manifest)
+        method = choice.method
+        fixed = {k: v for k, v in options.items() if k in option_names(method)}
+        options = {**choice.options, **fixed}
+        resolved = {"auto_method": method, "auto_options": json.dumps(options, sort_keys=True)}
+    config = TrainConfig(method=method, seed=int(point["seed"]),
                          max_steps=int(budget) if steps_budget else None,
                          max_seconds=None if steps_budget else float(budget),
-                         options=dict(point["options"]), checkpoint_every_seconds=math.inf,
+                         options=options, checkpoint_every_seconds=math.inf,
                          progress=False)
     scoped = reset_peak_rss()
     rss_before = _status_mb("VmRSS")
@@ -205,7 +232,7 @@ def run_point(point: dict, run_dir: Path) -> dict:
         "depth_mae_m": metrics["depth_mae_m"], "depth_rmse_m": metrics["depth_rmse_m"],
         "num_params": num_params(trainer.model), "image_size": f"{w}x{h}",
         "train_views": len(ds.indices("train")), "test_views": metrics["num_images"],
-        "torch_threads": torch.get_num_threads(), "host": platform.node(),
+        "torch_threads": torch.get_num_threads(), "host": platform.node(), **resolved,
     }
     chamfer = point.get("chamfer")
     if chamfer:

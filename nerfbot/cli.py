@@ -106,6 +106,7 @@ def cmd_train(args) -> int:
     config = TrainConfig(method=method, max_steps=args.max_steps,
                          max_seconds=max_seconds, seed=args.seed, lr=args.lr,
                          options=options, background=background,
+                         depth_weight=args.depth_weight,
                          eval_at_seconds=_floats(args.eval_at) if args.eval_at else (),
                          device=args.device, progress=not args.no_progress)
 
@@ -403,6 +404,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="training-loop time budget in seconds (loading and evaluation excluded)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--lr", type=float, default=None, help="learning rate (default: the method's)")
+    p.add_argument("--depth-weight", type=float, default=0.0, metavar="W",
+                   help="depth supervision from the dataset's depth maps (DS-NeRF style, for "
+                        "RGB-D captures): weight of the L1 depth error in scene-cube diagonals "
+                        "(default 0: RGB only)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out")
     p.add_argument("--aabb", type=float, nargs=6, default=None,
                    metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),

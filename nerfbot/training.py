@@ -50,6 +50,10 @@ class TrainConfig:
     """Training times (s) at which to pause the clock and record test PSNR (a learning curve)."""
     eval_at_steps: tuple = ()
     """Steps at which to record test PSNR."""
+    depth_weight: float = 0.0
+    """Depth supervision (as DS-NeRF, for RGB-D captures): weight of the L1 error of the rendered
+    expected z-depth against the dataset's depth maps, in units of the scene cube's diagonal,
+    on training pixels whose depth is finite and inside the bounds. 0 = RGB only."""
     device: str = "cpu"
     """torch device; the fast kernels are CPU kernels, other devices use the torch twins."""
     progress: bool = True
@@ -65,6 +69,8 @@ class TrainConfig:
             raise ValueError(f"max_seconds must be >= 0, got {self.max_seconds}")
         if self.lr is not None and not 0.0 < self.lr < math.inf:
             raise ValueError(f"lr must be positive and finite, got {self.lr}")
+        if not 0.0 <= self.depth_weight < math.inf:
+            raise ValueError(f"depth_weight must be >= 0 and finite, got {self.depth_weight}")
 
 
 class PixelBank:
@@ -86,6 +92,10 @@ class PixelBank:
         counts = torch.as_tensor([dataset.images[i].shape[0] * dataset.images[i].shape[1]
                                   for i in indices], dtype=torch.long)
         self.offsets = torch.cat([torch.zeros(1, dtype=torch.long), torch.cumsum(counts, 0)]).to(device)
+        self.depths: Optional[torch.Tensor] = None
+        """(P,) float32 z-depth of every pixel (NaN: unknown or outside the bounds), loaded by
+        :meth:`load_depths` for depth supervision."""
+        self._dataset, self._indices = dataset, list(indices)
         self.conds = None if conditions is None else \
             torch.as_tensor(conditions[indices], dtype=torch.float32, device=device)
         """(frames, C) condition vector of each frame (time or joints), None when static."""
@@ -97,9 +107,28 @@ class PixelBank:
         """(3,) mean colour of all pixels, in [0, 1]."""
         return self.pixels.float().mean(0) / 255.0
 
+    def load_depths(self) -> None:
+        """Keep the depth of every pixel (for depth supervision); ValueError naming the frames
+        without depth."""
+        from nerfbot.evaluation import depth_valid_mask
+
+        missing = [self._dataset.file_paths[i] for i in self._indices
+                   if self._dataset.depths[i] is None]
+        if missing:
+            raise ValueError(f"{self._dataset.root}: depth supervision needs a depth map for every "
+                             f"training frame; {len(missing)} have none (e.g. {missing[0]})")
+        maps = []
+        for i in self._indices:
+            d = np.asarray(self._dataset.depths[i], dtype=np.float32).copy()
+            d[~depth_valid_mask(self._dataset, i)] = np.nan
+            maps.append(d.reshape(-1))
+        self.depths = torch.from_numpy(np.concatenate(maps)).to(self.device)
+
     def sample(self, n: int, generator: torch.Generator) -> tuple[Rays, torch.Tensor, torch.Tensor]:
-        """``n`` random pixels: their rays, colours (n, 3) float32 in [0, 1], frame slots (n,)."""
+        """``n`` random pixels: their rays, colours (n, 3) float32 in [0, 1], frame slots (n,).
+        Their pixel indices are kept in :attr:`last_pixels`."""
         p = torch.randint(len(self), (n,), generator=generator).to(self.device)
+        self.last_pixels = p
         slot = torch.searchsorted(self.offsets[1:], p, right=True)
         local = p - self.offsets[slot]
         w = self.cameras.width[slot]
@@ -186,6 +215,10 @@ class Trainer:
         self.bank = PixelBank(dataset, dataset.indices("train"), self.device,
                               frame_conditions(dataset, conditioning))
         self.model.init_mean_color(self.bank.mean_color())
+        if config.depth_weight > 0:
+            self.bank.load_depths()
+        aabb = self.model.aabb
+        self.depth_scale = float((aabb[1] - aabb[0]).max()) * math.sqrt(3.0)
         self.generator = torch.Generator().manual_seed(config.seed)
         self.step = 0
         self.train_seconds = 0.0
@@ -260,6 +293,15 @@ class Trainer:
                 f"non-finite parameters after step {self.step} ({', '.join(bad[:3])}); lower the "
                 f"learning rate (now {self.optimizer.param_groups[0]['lr']:.2e})")
 
+    def _depth_loss(self, out) -> torch.Tensor:
+        """Mean L1 error of the expected z-depth of the last batch, on its pixels with a valid
+        depth, in cube diagonals (0 when none has one)."""
+        gt = self.bank.depths[self.bank.last_pixels]
+        valid = torch.isfinite(gt)
+        if not bool(valid.any()):
+            return out.z_depth.sum() * 0.0
+        return (out.z_depth[valid] - gt[valid]).abs().mean() / self.depth_scale
+
     def train(self, on_step: Optional[Callable[["Trainer"], None]] = None) -> dict:
         """Run until a budget is spent. ``on_step(trainer)`` is called after every step (tests
         use it to simulate interruptions). On KeyboardInterrupt a checkpoint is written first."""
@@ -287,6 +329,8 @@ class Trainer:
                 rays, target, slot = self.bank.sample(self.n_rays, self.generator)
                 cond = None if self.bank.conds is None else self.bank.conds[slot]
                 loss, out = self.model.loss(rays, target, self.generator, cond)
+                if c.depth_weight > 0:
+                    loss = loss + c.depth_weight * self._depth_loss(out)
                 self.optimizer.zero_grad(set_to_none=True)
                 if not torch.isfinite(loss):
                     raise FloatingPointError(

@@ -196,7 +196,6 @@ def test_joint_estimation_recovers_the_hinge_angle(toy_runs):
         est = estimate_joints(model, cond, cams, slot, ds.image_float(idx[slot]),
                               JointEstimateConfig(steps=25, rays_per_step=512, probe_rays=1024))
         errors.append(abs(est["joints"]["hinge"] - ds.joints[idx[slot]]["hinge"]))
-    # measured: median x.x degrees over the 4 held-out configurations
     assert np.degrees(np.median(errors)) < 5.0
 
 

@@ -349,3 +349,22 @@ def test_ray_executor_gives_the_same_table(tiny_capture, swept, tmp_path):
     assert {k: rows[0][k] for k in ("scene", "method", "budget", "image_size", "steps")} == \
         {k: local[0][k] for k in ("scene", "method", "budget", "image_size", "steps")}
     assert float(rows[0]["psnr"]) > 5 and float(rows[0]["peak_rss_mb"]) > 50
+
+
+def test_auto_is_a_bench_method_compared_with_the_best_other_configuration(tiny_capture, tmp_path):
+    """`--methods auto,ngp`: the auto point trains what the manifest picks and the table says
+    how far it is from the best other configuration."""
+    out = tmp_path / "auto"
+    assert main(["bench", "--data", str(tiny_capture[0]), "--methods", "auto,ngp",
+                 "--budget-kind", "steps", "--budgets", "3", "--option", "sh_degree=0,4",
+                 "--sizes", "16", "--out", str(out), "--no-chamfer", "--no-progress",
+                 *CHEAP]) == 0
+    doc = json.loads((out / "bench.json").read_text())
+    rows = doc["summary"]
+    assert [r["method"] for r in rows] == ["auto:ngp", "ngp", "ngp"]  # auto is never swept
+    auto = rows[0]
+    best = max(rows[1:], key=lambda r: r["psnr"])
+    assert auto["psnr_gap_to_best"] == pytest.approx(best["psnr"] - auto["psnr"])
+    assert auto["best_train_seconds"] == best["train_seconds"]
+    assert "sh_degree" not in json.loads(auto["options"])  # the tabletop has specular materials
+    assert "behind the best other configuration" in (out / "bench.md").read_text()

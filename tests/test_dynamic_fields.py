@@ -81,8 +81,9 @@ def trained(rollout, tmp_path_factory):
 def test_time_conditioned_fields_train_and_evaluate_at_held_out_times(trained):
     psnr = {m: r[1]["psnr"] for m, r in trained.items()}
     assert all(np.isfinite(v) for v in psnr.values())
-    # measured at 150 steps: ngp 2x.x, tnerf 2x.x, dnerf 2x.x dB
-    assert psnr["dnerf"] > 20.0 and psnr["tnerf"] > 20.0
+    # measured at 150 steps (32x32, 4 cameras x 16 time steps): ngp 28.9, tnerf 28.4, dnerf
+    # 29.1 dB; an untrained field is near 12 dB
+    assert psnr["dnerf"] > 25.0 and psnr["tnerf"] > 25.0
 
 
 def test_checkpoint_keeps_the_conditioning_and_render_sweeps_time(trained, tmp_path, capsys):
