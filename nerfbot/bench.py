@@ -351,11 +351,13 @@ def summarize(points: list[dict], runs: dict) -> list[dict]:
         for r, a, b in zip(mine, pareto_front([r["train_seconds"] for r in mine], psnr, True),
                            pareto_front([r["render_fps"] for r in mine], psnr, False)):
             r["pareto_train_time"], r["pareto_render_fps"] = a, b
-        others = [r for r in mine if not r["method"].startswith(AUTO) and r["psnr"] is not None]
-        best = max(others, key=lambda r: r["psnr"], default=None)
         for r in mine:
+            # --method auto against the best other configuration of the sweep at the same
+            # budget and image size
+            others = [o for o in mine if not o["method"].startswith(AUTO) and o["psnr"] is not None
+                      and (o["budget"], o["size"]) == (r["budget"], r["size"])]
+            best = max(others, key=lambda o: o["psnr"], default=None)
             if r["method"].startswith(AUTO) and best is not None and r["psnr"] is not None:
-                # --method auto against the best other configuration of the sweep
                 r["psnr_gap_to_best"] = best["psnr"] - r["psnr"]
                 r["best_config"] = f"{best['method']} {best['options']}".strip()
                 r["best_train_seconds"] = best["train_seconds"]

@@ -69,7 +69,7 @@ def markdown_table(rows: list[dict], cfg) -> str:
         for r in (r for r in rows if r["scene"] == scene and "psnr_gap_to_best" in r):
             lines += [f"`{r['method']}` ({r['options'] or 'defaults'}): "
                       f"{r['psnr_gap_to_best']:+.2f} dB behind the best other configuration "
-                      f"({r['best_config']}; negative = ahead), trained "
+                      f"at budget {r['budget']:g} ({r['best_config']}; negative = ahead), trained "
                       f"{r['train_seconds']:.0f} s vs {r['best_train_seconds']:.0f} s.", ""]
     return "\n".join(lines)
 

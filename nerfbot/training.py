@@ -96,6 +96,8 @@ class PixelBank:
         """(P,) float32 z-depth of every pixel (NaN: unknown or outside the bounds), loaded by
         :meth:`load_depths` for depth supervision."""
         self._dataset, self._indices = dataset, list(indices)
+        self.last_pixels: Optional[torch.Tensor] = None
+        """(n,) pixel indices of the last :meth:`sample`."""
         self.conds = None if conditions is None else \
             torch.as_tensor(conditions[indices], dtype=torch.float32, device=device)
         """(frames, C) condition vector of each frame (time or joints), None when static."""

@@ -171,7 +171,7 @@ def _train(data, method, steps, out):
 def toy_runs(toy, tmp_path_factory):
     """articulated and a static ngp, 300 small steps each on the toy capture."""
     root = tmp_path_factory.mktemp("toy_runs")
-    return {m: _train(toy, m, 300, root / m) for m in ("articulated", "ngp")}
+    return {m: (*_train(toy, m, 300, root / m), root / m) for m in ("articulated", "ngp")}
 
 
 def test_two_part_toy_renders_unseen_configurations(toy_runs):
@@ -187,7 +187,7 @@ def test_two_part_toy_renders_unseen_configurations(toy_runs):
 def test_joint_estimation_recovers_the_hinge_angle(toy_runs):
     from nerfbot.joint_estimation import JointEstimateConfig, estimate_joints
 
-    model, ds, _ = toy_runs["articulated"]
+    model, ds, _, _ = toy_runs["articulated"]
     cond = dataset_conditioning(ds)
     idx = ds.indices("test")
     cams = ds.cameras(idx)
@@ -197,6 +197,25 @@ def test_joint_estimation_recovers_the_hinge_angle(toy_runs):
                               JointEstimateConfig(steps=25, rays_per_step=512, probe_rays=1024))
         errors.append(abs(est["joints"]["hinge"] - ds.joints[idx[slot]]["hinge"]))
     assert np.degrees(np.median(errors)) < 5.0
+
+
+def test_cli_estimate_joints_and_joint_sweep(toy_runs, tmp_path, capsys):
+    import json
+
+    import cv2
+
+    from nerfbot.cli import main
+
+    run = toy_runs["articulated"][3]
+    assert main(["estimate-joints", str(run), "--every", "3", "--max-images", "2", "--steps", "5",
+                 "--json", "--no-progress"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["num_images"] == 2 and doc["units"] == {"hinge": "deg"}
+    assert len(doc["per_image"]) == 2 and doc["median_error"]["hinge"] >= 0
+    video = tmp_path / "hinge.mp4"
+    assert main(["render", str(run), "--sweep", "hinge", "--frames", "4", "--size", "24",
+                 "--out", str(video), "--no-progress"]) == 0
+    assert int(cv2.VideoCapture(str(video)).get(cv2.CAP_PROP_FRAME_COUNT)) == 4
 
 
 def test_conditioning_round_trip_and_sweeps():
