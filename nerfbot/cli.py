@@ -53,9 +53,6 @@ def _run_data_path(run: Path) -> Path | None:
     return None
 
 
-#: Default gradient steps per start of ``nerfbot estimate-joints`` (JointEstimateConfig.steps).
-JOINT_STEPS = 60
-
 # -- commands --------------------------------------------------------------------------------
 def cmd_capture(args) -> int:
     from sims.cli import run_capture
@@ -135,9 +132,9 @@ def _float_list(text: str) -> list[float]:
     return values
 
 
-def cmd_eval(args) -> int:
-    from nerfbot.evaluation import evaluate
-    from nerfbot.models import num_params
+def _run_and_dataset(args):
+    """(model, checkpoint info, dataset folder, dataset) of ``args.run`` evaluated on
+    ``args.data`` (default: the dataset the run was trained on)."""
     from nerfbot.training import load_model
 
     run = Path(args.run)
@@ -145,7 +142,14 @@ def cmd_eval(args) -> int:
     data = Path(args.data) if args.data else _run_data_path(run)
     if data is None:
         raise SystemExit(f"{run}: no config.json naming the dataset; pass --data DIR")
-    ds = _load_dataset(data)
+    return model, info, data, _load_dataset(data)
+
+
+def cmd_eval(args) -> int:
+    from nerfbot.evaluation import evaluate
+    from nerfbot.models import num_params
+
+    model, info, data, ds = _run_and_dataset(args)
     metrics = evaluate(model, ds, args.split)
     metrics.update(method=info["spec"]["method"], num_params=num_params(model),
                    train_seconds=info["train_seconds"], steps=info["step"], split=args.split,
@@ -169,16 +173,12 @@ def cmd_eval(args) -> int:
 def cmd_estimate_joints(args) -> int:
     from nerfbot.conditioning import Conditioning
     from nerfbot.joint_estimation import JointEstimateConfig, evaluate_joint_estimation
-    from nerfbot.training import load_model
 
-    run = Path(args.run)
-    model, info = load_model(run, args.device)
-    data = Path(args.data) if args.data else _run_data_path(run)
-    if data is None:
-        raise SystemExit(f"{run}: no config.json naming the dataset; pass --data DIR")
-    ds = _load_dataset(data)
+    model, info, data, ds = _run_and_dataset(args)
     conditioning = Conditioning.from_dict(info["spec"].get("conditioning"))
-    cfg = JointEstimateConfig(steps=args.steps, seed=args.seed)
+    cfg = JointEstimateConfig(seed=args.seed)
+    if args.steps is not None:
+        cfg.steps = args.steps
     idx = ds.indices(args.split)[::args.every]
     if args.max_images:
         idx = idx[:args.max_images]
@@ -450,7 +450,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--every", type=int, default=1, metavar="K",
                    help="use every K-th image of the split (e.g. one view per configuration)")
     p.add_argument("--max-images", type=int, default=None)
-    p.add_argument("--steps", type=int, default=JOINT_STEPS, help="gradient steps per start")
+    p.add_argument("--steps", type=int, default=None,
+                   help="gradient steps per start (default: JointEstimateConfig.steps, 60)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", action="store_true")
     p.add_argument("--device", default="cpu")
