@@ -203,7 +203,7 @@ def run_point(point: dict, run_dir: Path) -> dict:
 
         from nerfbot.methods import option_names
 
-        choice = choose_from_manifest(ds.manifest)
+        choice = choose_from_manifest(ds.manifest, None if steps_budget else float(budget))
         method = choice.method
         fixed = {k: v for k, v in options.items() if k in option_names(method)}
         options = {**choice.options, **fixed}

@@ -90,7 +90,8 @@ def cmd_train(args) -> int:
 
         try:
             choice = auto_train_config(ds.manifest, Path(args.data), out, options,
-                                       args.target_psnr, args.time_budget, args.bench_table)
+                                       args.target_psnr, args.time_budget, args.bench_table,
+                                       max_seconds=args.max_seconds)
         except (ValueError, FileNotFoundError) as err:
             raise SystemExit(f"nerfbot train --method auto: {err}")
         method, options = choice.method, choice.options
@@ -149,8 +150,10 @@ def cmd_eval(args) -> int:
     from nerfbot.evaluation import evaluate
     from nerfbot.models import num_params
 
+    if args.downscale < 1:
+        raise ValueError(f"--downscale must be a positive integer, got {args.downscale}")
     model, info, data, ds = _run_and_dataset(args)
-    metrics = evaluate(model, ds, args.split)
+    metrics = evaluate(model, ds, args.split, downscale=args.downscale)
     metrics.update(method=info["spec"]["method"], num_params=num_params(model),
                    train_seconds=info["train_seconds"], steps=info["step"], split=args.split,
                    data=str(data))
@@ -167,6 +170,34 @@ def cmd_eval(args) -> int:
     else:
         for k, v in metrics.items():
             print(f"{k:>22}: {v}")
+    return 0
+
+
+def cmd_bake(args) -> int:
+    """Bake a trained run into a faster renderer (a run folder of its own)."""
+    from nerfbot.baking import write_baked_run
+
+    if (args.cache is None) == (args.octree is None):
+        raise SystemExit("nerfbot bake: give exactly one of --cache NP,ND (fastnerf) and "
+                         "--octree DEPTH (plenoctree)")
+    model, info, data, ds = _run_and_dataset(args)
+    method = info["spec"]["method"]
+    if args.cache is not None:
+        from nerfbot.fields.fastnerf import bake_cache
+
+        if len(args.cache) != 2:
+            raise SystemExit(f"nerfbot bake: --cache wants NP,ND (two integers), got {args.cache}")
+        baked, spec, extra = bake_cache(model, info["spec"], args.cache[0], args.cache[1],
+                                        progress=not args.no_progress)
+    else:
+        from nerfbot.plenoctree import bake_octree
+
+        baked, spec, extra = bake_octree(model, info["spec"], args.octree, dataset=ds,
+                                         finetune_steps=args.finetune_steps, seed=args.seed,
+                                         progress=not args.no_progress)
+    extra = {"source_run": str(args.run), "source_method": method, **extra}
+    write_baked_run(baked, spec, info, args.out, data=data, extra=extra)
+    print(json.dumps(extra | {"out": str(args.out)}))
     return 0
 
 
@@ -430,6 +461,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", type=Path, default=None,
                    help="dataset folder (default: the one the run was trained on)")
     p.add_argument("--split", default="test")
+    p.add_argument("--downscale", type=int, default=1, metavar="K",
+                   help="evaluate at 1/K resolution: cameras scaled by 1/K, ground truth "
+                        "area-averaged (the multiscale protocol; default 1)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--depth-sweep", action="store_true",
                    help="also compare expected, median and threshold depth (and the simulated "
@@ -440,6 +474,24 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --depth-sweep: write the sweep as a PNG plot here")
     p.add_argument("--device", default="cpu")
     p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser("bake", help="bake a trained run into a faster renderer: a FastNeRF "
+                                    "cache (--cache) or a PlenOctree (--octree)")
+    p.add_argument("run", type=Path, help="trained run folder (fastnerf or plenoctree)")
+    p.add_argument("--out", required=True, type=Path, help="run folder for the baked renderer")
+    p.add_argument("--cache", type=_int_list, default=None, metavar="NP,ND",
+                   help="FastNeRF cache: position outputs on an NP^3 grid (occupied cells "
+                        "only), direction outputs on an ND x ND grid")
+    p.add_argument("--octree", type=int, default=None, metavar="DEPTH",
+                   help="PlenOctree: octree of this depth (leaf size = cube / 2^DEPTH)")
+    p.add_argument("--finetune-steps", type=int, default=0, metavar="N",
+                   help="with --octree: fine-tune the octree leaves on the training images")
+    p.add_argument("--data", type=Path, default=None,
+                   help="dataset folder (default: the one the run was trained on)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=cmd_bake)
 
     p = sub.add_parser("estimate-joints",
                        help="estimate the joint configuration of each image of a split by "

@@ -45,8 +45,12 @@ class Model(nn.Module, metaclass=abc.ABCMeta):
         out = self.render_rays(rays, generator, cond)
         return F.mse_loss(out.rgb, target_rgb), out
 
-    def before_step(self, step: int, generator: Optional[torch.Generator] = None) -> dict:
-        """Upkeep before optimisation step ``step`` (e.g. occupancy updates); returns log values."""
+    def before_step(self, step: int, generator: Optional[torch.Generator] = None,
+                    progress: float = 0.0) -> dict:
+        """Upkeep before optimisation step ``step``, ``progress`` in [0, 1] of the budget (e.g.
+        occupancy updates, grid upsampling); returns log values. A model whose parameters
+        changed shape or identity returns ``{"params_changed": True}``: the trainer then builds
+        a new optimiser (as TensoRF and Plenoxels do after upsampling)."""
         return {}
 
     def init_mean_color(self, rgb: torch.Tensor) -> None:
@@ -202,13 +206,14 @@ class OccupancyModel(Model):
         return loss, out
 
     # -- upkeep ------------------------------------------------------------------------------
-    def before_step(self, step: int, generator=None) -> dict:
+    def before_step(self, step: int, generator=None, progress: float = 0.0) -> dict:
+        out = dict(self.field.before_step(step, progress))
         if step == 0 or step % self.config.grid_update_every:
-            return {}
+            return out
         frac = self.grid.update(lambda x: self.field.occupancy_density(x, generator), self.dt_min,
                                 generator,
                                 prune=step >= self.config.grid_warmup_steps)
-        return {"occupied": frac}
+        return {**out, "occupied": frac}
 
     def rays_for_next_batch(self, last_samples: Optional[int], n_rays: int) -> int:
         """Rays that make ``samples_per_batch`` samples at the last batch's samples per ray.
@@ -274,6 +279,25 @@ class HierarchicalModel(Model):
     def loss(self, rays, target_rgb, generator=None, cond=None):
         coarse, fine = self._render_both(rays, generator, cond)
         return F.mse_loss(coarse.rgb, target_rgb) + F.mse_loss(fine.rgb, target_rgb), fine
+
+
+def resize_like_state_dict(module: nn.Module, state_dict: dict) -> None:
+    """Give every parameter and buffer of ``module`` the shape and dtype it has in
+    ``state_dict``, so it can be loaded. Fields whose tensors change size (upsampled grids,
+    sparse baked caches, octrees) are built at their initial size and take the stored size
+    here; they must derive any size they need from their tensors' shapes."""
+    for name, value in state_dict.items():
+        owner_name, _, attr = name.rpartition(".")
+        owner = module.get_submodule(owner_name) if owner_name else module
+        if attr in owner._parameters and owner._parameters[attr] is not None:
+            p = owner._parameters[attr]
+            if p.shape != value.shape or p.dtype != value.dtype:
+                p.data = torch.empty(value.shape, dtype=value.dtype, device=p.device)
+        elif attr in owner._buffers:
+            b = owner._buffers[attr]
+            if b is None or b.shape != value.shape or b.dtype != value.dtype:
+                device = value.device if b is None else b.device
+                owner._buffers[attr] = torch.empty(value.shape, dtype=value.dtype, device=device)
 
 
 def num_params(model: nn.Module) -> int:

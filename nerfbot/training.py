@@ -20,7 +20,7 @@ from nerfbot.conditioning import Conditioning, dataset_conditioning, frame_condi
 from nerfbot.data.dataset import Dataset
 from nerfbot.data.writers import write_json_atomic
 from nerfbot.methods import build_model, get_method
-from nerfbot.models import Model
+from nerfbot.models import Model, resize_like_state_dict
 
 log = logging.getLogger(__name__)
 
@@ -211,8 +211,7 @@ class Trainer:
         torch.manual_seed(config.seed)
         self.model = build_from_spec(self.spec, self.device)
         self.lr = config.lr if config.lr is not None else self.method.lr
-        self.optimizer = torch.optim.Adam(self.model.param_groups(), lr=self.lr, betas=(0.9, 0.99),
-                                          eps=self.method.adam_eps)
+        self.optimizer = self._make_optimizer()
         conditioning = Conditioning.from_dict(self.spec["conditioning"])
         self.bank = PixelBank(dataset, dataset.indices("train"), self.device,
                               frame_conditions(dataset, conditioning))
@@ -228,6 +227,10 @@ class Trainer:
         self.last_samples: Optional[int] = None
         self.curve: list[dict] = []
         self.evaluate_fn = evaluate_fn
+
+    def _make_optimizer(self) -> torch.optim.Optimizer:
+        return torch.optim.Adam(self.model.param_groups(), lr=self.lr, betas=(0.9, 0.99),
+                                eps=self.method.adam_eps)
 
     # -- state -------------------------------------------------------------------------------
     def state(self) -> dict:
@@ -253,7 +256,9 @@ class Trainer:
         if ckpt["spec"]["method"] != self.config.method:
             raise ValueError(f"{path}: checkpoint is method {ckpt['spec']['method']!r}, "
                              f"not {self.config.method!r}")
+        resize_like_state_dict(self.model, ckpt["model"])
         self.model.load_state_dict(ckpt["model"])
+        self.optimizer = self._make_optimizer()  # over the (possibly resized) parameters
         self.optimizer.load_state_dict(ckpt["optimizer"])
         self.step, self.train_seconds = ckpt["step"], ckpt["train_seconds"]
         self.n_rays, self.curve = ckpt["n_rays"], ckpt["curve"]
@@ -323,10 +328,12 @@ class Trainer:
         try:
             while not self.done():
                 t0 = time.perf_counter()
+                upkeep = self.model.before_step(self.step, self.generator, self.progress())
+                if upkeep.pop("params_changed", False):
+                    self.optimizer = self._make_optimizer()
                 lr = learning_rate(self.lr, self.method.lr_final_factor, self.progress())
                 for group in self.optimizer.param_groups:
                     group["lr"] = lr * group["lr_scale"]
-                upkeep = self.model.before_step(self.step, self.generator)
                 self.n_rays = self.model.rays_for_next_batch(self.last_samples, self.n_rays)
                 rays, target, slot = self.bank.sample(self.n_rays, self.generator)
                 cond = None if self.bank.conds is None else self.bank.conds[slot]
@@ -385,6 +392,7 @@ def load_model(run_dir, device="cpu") -> tuple[Model, dict]:
         raise FileNotFoundError(f"{path}: no checkpoint (is {run_dir} a training run folder?)")
     ckpt = torch.load(path, map_location=device, weights_only=False)
     model = build_from_spec(ckpt["spec"], device)
+    resize_like_state_dict(model, ckpt["model"])
     model.load_state_dict(ckpt["model"])
     model.eval()
     info = {k: ckpt[k] for k in ("spec", "step", "train_seconds", "curve", "config")}

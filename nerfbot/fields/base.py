@@ -68,6 +68,12 @@ class Field(nn.Module, metaclass=abc.ABCMeta):
         grid keeps a decaying maximum over updates)."""
         return self.density(x)[0]
 
+    def before_step(self, step: int, progress: float) -> dict:
+        """Field upkeep before training step ``step`` at ``progress`` in [0, 1] of the budget
+        (e.g. coarse-to-fine upsampling); ``{"params_changed": True}`` asks the trainer for a
+        new optimiser. Default: nothing."""
+        return {}
+
     def regularizer(self) -> Optional[torch.Tensor]:
         """A scalar added to the training loss (e.g. smoothness of a space-time grid), or None."""
         return None
