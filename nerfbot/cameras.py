@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 import torch
@@ -175,7 +176,25 @@ class Cameras:
         px = (u.reshape(-1) + 0.5) * sx
         py = (v.reshape(-1) + 0.5) * sy
         return pixel_rays(self.c2w[index], self.fx[index], self.fy[index], self.cx[index],
-                          self.cy[index], px, py)
+                          self.cy[index], px, py, sx, sy)
+
+    def scaled(self, factor: float) -> "Cameras":
+        """The same cameras imaging at ``factor`` times the resolution (``scaled(1 / K)``: K
+        times fewer pixels per side, K times larger pixels). Sizes round down to whole pixels
+        (at least 1; ``W // K`` for ``1 / K``, as :meth:`rays` with ``downscale=K``) and the
+        intrinsics scale by the exact size ratios per axis, so each image still spans the same
+        field of view, as a ``cv2.resize`` of the image does."""
+        if not (math.isfinite(factor) and factor > 0):
+            raise ValueError(f"camera scale factor must be finite and > 0, got {factor}")
+
+        def size(n):  # the epsilon keeps 24 * (1 / 3) at 8, not 7
+            return torch.clamp(torch.floor(n.double() * factor + 1e-6), min=1).to(torch.int64)
+
+        width, height = size(self.width), size(self.height)
+        sx = (width.double() / self.width.double()).float()
+        sy = (height.double() / self.height.double()).float()
+        return Cameras(self.c2w.clone(), self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy,
+                       width, height)
 
 
 @dataclass
@@ -187,29 +206,44 @@ class Rays:
         directions: (R, 3) float32 unit directions; distance along a ray is ``t`` in metres.
         z_per_t: (R,) float32, z-depth per unit ray distance (cosine to the optical axis), so
             ``z_depth = t * z_per_t``.
+        radii: (R,) float32 or None: the radius of the cone through the ray's pixel per unit
+            ray distance (at distance ``t`` the cone's radius is ``t * radii`` metres), set by
+            :func:`pixel_rays`; mip-NeRF's ``2 / sqrt(12)`` times the pixel's width. None for
+            rays that do not come from pixels.
     """
 
     origins: torch.Tensor
     directions: torch.Tensor
     z_per_t: torch.Tensor
+    radii: Optional[torch.Tensor] = None
 
     def __len__(self) -> int:
         return int(self.origins.shape[0])
 
     def __getitem__(self, idx) -> "Rays":
-        return Rays(self.origins[idx], self.directions[idx], self.z_per_t[idx])
+        return Rays(self.origins[idx], self.directions[idx], self.z_per_t[idx],
+                    None if self.radii is None else self.radii[idx])
 
     def to(self, device) -> "Rays":
-        return Rays(self.origins.to(device), self.directions.to(device), self.z_per_t.to(device))
+        return Rays(self.origins.to(device), self.directions.to(device), self.z_per_t.to(device),
+                    None if self.radii is None else self.radii.to(device))
 
 
-def pixel_rays(c2w: torch.Tensor, fx, fy, cx, cy, px: torch.Tensor, py: torch.Tensor) -> Rays:
+#: mip-NeRF's cone radius in pixel widths: a disk of this radius has the variance of a pixel
+#: square (1 / 12 per axis).
+PIXEL_RADIUS = 2.0 / math.sqrt(12.0)
+
+
+def pixel_rays(c2w: torch.Tensor, fx, fy, cx, cy, px: torch.Tensor, py: torch.Tensor,
+               pixel_w=1.0, pixel_h=1.0) -> Rays:
     """Rays through image points (px, py), given in pixel units (pixel centres at +0.5).
 
     Args:
         c2w: (4, 4) or (R, 4, 4) camera-to-world, OpenGL convention.
         fx, fy, cx, cy: scalars or (R,) tensors, pixels.
         px, py: (R,) image coordinates in pixels, x to the right, y downwards.
+        pixel_w, pixel_h: size of the pixels the rays stand for, in pixels of these intrinsics
+            (> 1 for an image rendered at a lower resolution); sets ``Rays.radii``.
     """
     dir_cam = torch.stack([(px - cx) / fx, -(py - cy) / fy, -torch.ones_like(px)], dim=-1)
     norm = dir_cam.norm(dim=-1, keepdim=True)
@@ -221,4 +255,9 @@ def pixel_rays(c2w: torch.Tensor, fx, fy, cx, cy, px: torch.Tensor, py: torch.Te
     else:
         directions = torch.einsum("rij,rj->ri", rot, dir_cam)
         origins = c2w[:, :3, 3]
-    return Rays(origins.contiguous(), directions.contiguous(), (1.0 / norm.squeeze(-1)).contiguous())
+    z_per_t = (1.0 / norm.squeeze(-1)).contiguous()
+    # mip-NeRF: the pixel's width on the z = 1 image plane, times 2 / sqrt(12); along the unit
+    # direction that plane lies at distance 1 / z_per_t, so the radius per metre is scaled by z_per_t
+    width = torch.sqrt(torch.as_tensor(pixel_w * pixel_h / (fx * fy), dtype=torch.float32))
+    radii = (PIXEL_RADIUS * width * z_per_t).contiguous()
+    return Rays(origins.contiguous(), directions.contiguous(), z_per_t, radii)

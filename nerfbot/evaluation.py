@@ -55,6 +55,31 @@ def object_geom_ids(dataset: Dataset) -> np.ndarray | None:
     return np.array([int(g) for g, n in manifest.get("geoms", {}).items() if n in names], np.int32)
 
 
+def downscale_area(image: np.ndarray, width: int, height: int) -> np.ndarray:
+    """``image`` (H, W) or (H, W, C) resized to (height, width) by area averaging
+    (cv2.INTER_AREA, the multiscale protocol's ground truth), as float32."""
+    import cv2
+
+    image = np.ascontiguousarray(image, dtype=np.float32)
+    if image.shape[:2] == (height, width):
+        return image
+    return cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
+
+
+def downscale_depth(depth: np.ndarray, valid: np.ndarray, width: int, height: int
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Ground-truth depth (H, W) at a lower resolution: each low-resolution pixel is the
+    area-weighted mean of the full-resolution depths it covers, and it is valid only when all
+    of them are valid (a block that is partly invalid, e.g. straddling the scene bounds, is
+    dropped rather than averaged over its valid part). Returns (depth, valid), (height, width)."""
+    v = valid.astype(np.float32)
+    d = np.where(valid, np.nan_to_num(np.asarray(depth, np.float32)), 0.0)
+    cover = downscale_area(v, width, height)
+    total = downscale_area(d * v, width, height)
+    ok = cover >= 1.0 - 1e-4
+    return np.where(ok, total / np.maximum(cover, 1e-12), np.nan).astype(np.float32), ok
+
+
 class _DepthErrorSum:
     """Running absolute / squared depth error over many images."""
 
@@ -76,7 +101,7 @@ class _DepthErrorSum:
 
 
 def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: int | None = None,
-             with_ssim: bool = True) -> dict:
+             with_ssim: bool = True, downscale: int = 1) -> dict:
     """Render every frame of ``split`` and compare with the ground truth.
 
     Returns psnr / ssim (means over images); depth_mae_m / depth_rmse_m of the expected z-depth
@@ -87,10 +112,22 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
     psnr_objects: PSNR pooled over the pixels of those objects, their mask dilated by
     :data:`OBJECT_MASK_DILATION_PX` (in dynamic and articulated scenes the objects are what
     moves, a small part of each image; None without segmentation or objects);
-    render_ms_per_image (median over images); num_images.
+    render_ms_per_image (median over images); num_images; downscale.
+
+    ``downscale`` K > 1 evaluates at 1/K resolution (the multiscale protocol): the cameras are
+    :meth:`~nerfbot.cameras.Cameras.scaled` by 1/K, the ground-truth images area-averaged
+    (:func:`downscale_area`), depth compared on low-resolution pixels whose K x K block is
+    entirely valid, against the block's mean depth (:func:`downscale_depth`); object masks
+    (a low-resolution pixel belongs to the objects if any of its block does, then dilated) for
+    psnr_objects, and blocks entirely on objects for the object depth errors.
     """
+    if isinstance(downscale, bool) or not isinstance(downscale, (int, np.integer)) or downscale < 1:
+        raise ValueError(f"downscale must be a positive integer, got {downscale!r}")
+    downscale = int(downscale)
     indices = dataset.indices(split)[:max_images]
     cams = dataset.cameras(indices)
+    if downscale > 1:
+        cams = cams.scaled(1.0 / downscale)
     psnrs, ssims, times = [], [], []
     all_px, obj_px = _DepthErrorSum(), _DepthErrorSum()
     all_med, obj_med = _DepthErrorSum(), _DepthErrorSum()
@@ -102,23 +139,30 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
         t0 = time.perf_counter()
         out = render_image(model, cams, slot, cond=cond)
         times.append(time.perf_counter() - t0)
-        gt = dataset.image_float(i)
+        h, w = out["rgb"].shape[:2]
+        gt = downscale_area(dataset.image_float(i), w, h)
         psnrs.append(psnr(out["rgb"], gt))
         if with_ssim:
             ssims.append(ssim(out["rgb"], gt))
         seg = dataset.segmentations[i]
+        on_obj = None
         if objects is not None and seg is not None:
-            mask = _dilate(np.isin(seg, objects), OBJECT_MASK_DILATION_PX)
+            cover = downscale_area(np.isin(seg, objects).astype(np.float32), w, h)
+            on_obj = cover >= 1.0 - 1e-4  # pixels entirely on objects (all of them when K = 1)
+            mask = _dilate(cover > 0, OBJECT_MASK_DILATION_PX)
             obj_sq += float(((out["rgb"][mask] - gt[mask]).astype(np.float64) ** 2).sum())
             obj_n += 3 * int(mask.sum())
         valid = depth_valid_mask(dataset, i)
         if valid is not None:
-            all_px.add(out["z_depth"], dataset.depths[i], valid)
-            all_med.add(out["median_z_depth"], dataset.depths[i], valid)
-            if objects is not None and seg is not None:
-                on_objects = valid & np.isin(seg, objects)
-                obj_px.add(out["z_depth"], dataset.depths[i], on_objects)
-                obj_med.add(out["median_z_depth"], dataset.depths[i], on_objects)
+            depth = dataset.depths[i]
+            if downscale > 1:
+                depth, valid = downscale_depth(depth, valid, w, h)
+            all_px.add(out["z_depth"], depth, valid)
+            all_med.add(out["median_z_depth"], depth, valid)
+            if on_obj is not None:
+                on_objects = valid & on_obj
+                obj_px.add(out["z_depth"], depth, on_objects)
+                obj_med.add(out["median_z_depth"], depth, on_objects)
     result = {
         "psnr": float(np.mean(psnrs)) if psnrs else float("nan"),
         "ssim": float(np.mean(ssims)) if ssims else float("nan"),
@@ -132,5 +176,6 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
         "median_depth_mae_objects_m": obj_med.mae(),
         "render_ms_per_image": float(np.median(times) * 1e3) if times else None,
         "num_images": len(indices),
+        "downscale": downscale,
     }
     return result

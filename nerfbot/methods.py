@@ -15,6 +15,8 @@ from nerfbot.background import make_background
 from nerfbot.conditioning import Conditioning
 from nerfbot.fields.articulated import ArticulatedField, ArticulatedFieldConfig
 from nerfbot.fields.dnerf import DNeRFField, DNeRFFieldConfig
+from nerfbot.fields.mipnerf import (MipNeRFField, MipNeRFFieldConfig, MipNeRFModel,
+                                    MipNeRFModelConfig)
 from nerfbot.fields.nerf import NeRFField, NeRFFieldConfig
 from nerfbot.fields.ngp import NGPField, NGPFieldConfig
 from nerfbot.fields.tnerf import TNeRFField, TNeRFFieldConfig
@@ -63,6 +65,12 @@ def _build_nerf(aabb, background, options, seed, conditioning) -> Model:
                              aabb, _apply(HierarchicalModelConfig(), options))
 
 
+def _build_mipnerf(aabb, background, options, seed, conditioning) -> Model:
+    field = MipNeRFField(aabb, _apply(MipNeRFFieldConfig(), options))
+    return MipNeRFModel(field, make_background(background), aabb,
+                        _apply(MipNeRFModelConfig(), options))
+
+
 def _build_tnerf(aabb, background, options, seed, conditioning) -> Model:
     field = TNeRFField(aabb, conditioning, _apply(NGPFieldConfig(), options),
                        _apply(TNeRFFieldConfig(), options), seed=seed)
@@ -91,6 +99,10 @@ METHODS: dict[str, MethodSpec] = {
     "nerf": MethodSpec(_build_nerf, lr=5e-4, adam_eps=1e-8, lr_final_factor=0.1,
                        description="vanilla NeRF, positional encoding, coarse + fine (reference)",
                        configs=(NeRFFieldConfig, HierarchicalModelConfig)),
+    "mipnerf": MethodSpec(_build_mipnerf, lr=5e-4, adam_eps=1e-8, lr_final_factor=0.1,
+                          description="mip-NeRF: cones, integrated positional encoding, one MLP "
+                                      "for coarse + fine (anti-aliased at lower resolutions)",
+                          configs=(MipNeRFFieldConfig, MipNeRFModelConfig)),
     "tnerf": MethodSpec(_build_tnerf, lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
                         description="T-NeRF: time or joints as an extra input of an NGP field",
                         configs=(NGPFieldConfig, TNeRFFieldConfig, OccupancyModelConfig)),
