@@ -177,3 +177,57 @@ def test_depth_supervision_uses_valid_depth_and_refuses_datasets_without_it(tiny
         Trainer(ds, tmp_path / "x", TrainConfig(method="ngp", max_steps=1, depth_weight=0.1))
     with pytest.raises(ValueError, match="depth_weight"):
         TrainConfig(method="ngp", max_steps=1, depth_weight=-1.0).validate()
+
+
+def _growing_method():
+    """A registry entry whose field's ``gain`` parameter grows from (1,) to (2,) at step 2."""
+    from dataclasses import replace
+
+    from nerfbot.fields.ngp import NGPField, NGPFieldConfig
+    from nerfbot.methods import METHODS, _build_ngp
+
+    class GrowingNGP(NGPField):
+        def __init__(self, *a, **k):
+            super().__init__(*a, **k)
+            self.gain = torch.nn.Parameter(torch.ones(1))
+
+        def before_step(self, step, progress):
+            if step == 2 and self.gain.numel() == 1:
+                self.gain = torch.nn.Parameter(torch.cat([self.gain.detach(), torch.ones(1)]))
+                return {"params_changed": True}
+            return {}
+
+        def density(self, x, cond=None):
+            sigma, feat = super().density(x, cond)
+            return sigma * self.gain.mean(), feat
+
+    def build(aabb, background, options, seed, conditioning):
+        model = _build_ngp(aabb, background, options, seed, conditioning)
+        grown = GrowingNGP(aabb, NGPFieldConfig(log2_hashmap_size=12, n_levels=4), seed=seed)
+        model.field = grown
+        return model
+
+    return replace(METHODS["ngp"], build=build)
+
+
+def test_fields_that_grow_get_a_new_optimiser_and_reload_at_their_new_size(tiny_capture, tmp_path,
+                                                                            monkeypatch):
+    from nerfbot.methods import METHODS
+
+    monkeypatch.setitem(METHODS, "growing", _growing_method())
+    ds = load_dataset(tiny_capture[0])
+    cfg = TrainConfig(method="growing", max_steps=4, progress=False)
+    trainer = Trainer(ds, tmp_path / "run", cfg)
+    trainer.train()
+    gain = trainer.model.field.gain
+    assert gain.shape == (2,)
+    assert any(p is gain for g in trainer.optimizer.param_groups for p in g["params"])
+    assert gain.grad is not None and torch.isfinite(gain).all()  # trained after growing
+
+    model, _ = load_model(tmp_path / "run")  # built at (1,), resized from the checkpoint
+    assert torch.equal(model.field.gain, gain.detach())
+    resumed = Trainer(ds, tmp_path / "run", TrainConfig(method="growing", max_steps=6,
+                                                         progress=False))
+    assert resumed.load() and resumed.model.field.gain.shape == (2,)
+    resumed.train()
+    assert resumed.step == 6 and torch.isfinite(resumed.model.field.gain).all()
