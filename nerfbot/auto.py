@@ -7,10 +7,7 @@ Two decisions, each explained in :attr:`AutoChoice.reasons`:
    - conditioning: a static capture gets none; time-varying captures need a time-conditioned
      field, captures with moving joints a joint-conditioned one (methods of those kinds are
      chosen when the registry has them, otherwise a clear error says what is missing);
-   - no specular material → view-independent colour (spherical-harmonics degree 0); with
-     specular materials but a short training budget (under
-     :data:`VIEW_DEPENDENCE_MIN_SECONDS`) also degree 0, because a view-independent field
-     converges faster and view dependence only pays off once the geometry has settled;
+   - no specular material → view-independent colour (spherical-harmonics degree 0);
    - transparent geoms → keep low-density structure (a 10x lower occupancy threshold, so faint
      glass is never pruned), the distortion loss against floaters, and threshold depth as the
      run's default depth query (Dex-NeRF);
@@ -36,12 +33,6 @@ log = logging.getLogger(__name__)
 TRANSPARENT_GRID_THRESHOLD = 0.001
 #: Distortion-loss weight for scenes with transparent geoms (fewer floaters at low thresholds).
 TRANSPARENT_DISTORTION = 0.01
-#: Training budgets (seconds) below which even a specular scene gets view-independent colour.
-#: Measured on the tabletop (chrome sphere, gem, glossy can, glossy table; BENCHMARKS.md, issue
-#: 4): SH degree 0 beats degree 4 by 0.5-0.8 dB at 30-120 s, and the two are level at 180 s
-#: (32.77 vs 32.95 dB). View-dependent colour lets the colour MLP explain geometry errors by
-#: viewing angle (the shape-radiance ambiguity), which slows early convergence.
-VIEW_DEPENDENCE_MIN_SECONDS = 150.0
 #: Budgets (training seconds) of the built-in sweep when no bench table is given.
 BUILTIN_SWEEP_SECONDS = (30.0, 60.0, 120.0)
 
@@ -75,10 +66,8 @@ class AutoChoice:
 _CONDITIONED = {"time": ("dnerf", "tnerf"), "joints": ("articulated",)}
 
 
-def choose_from_manifest(manifest: Optional[dict],
-                         budget_seconds: Optional[float] = None) -> AutoChoice:
-    """The method and options a scene needs, from its manifest (None: no manifest), for a
-    training budget of ``budget_seconds`` (None: unknown, or a step budget).
+def choose_from_manifest(manifest: Optional[dict]) -> AutoChoice:
+    """The method and options a scene needs, from its manifest (None: no manifest).
 
     Raises:
         ValueError: the scene needs a kind of field the registry does not have yet.
@@ -110,16 +99,8 @@ def choose_from_manifest(manifest: Optional[dict],
     if not manifest.get("specular", True):
         choice.options["sh_degree"] = 0
         choice.reasons.append("view-independent colour (SH degree 0): no specular material")
-    elif budget_seconds is not None and budget_seconds < VIEW_DEPENDENCE_MIN_SECONDS:
-        choice.options["sh_degree"] = 0
-        choice.reasons.append(
-            f"view-independent colour (SH degree 0): specular materials present, but a "
-            f"{budget_seconds:g} s budget is under {VIEW_DEPENDENCE_MIN_SECONDS:g} s, where a "
-            "view-independent field converges faster")
     else:
-        choice.reasons.append("view-dependent colour (SH degree 4): specular materials present"
-                              + ("" if budget_seconds is None else
-                                 f" and a {budget_seconds:g} s budget"))
+        choice.reasons.append("view-dependent colour (SH degree 4): specular materials present")
     transparent = manifest.get("transparent_geoms") or []
     if transparent:
         choice.options["grid_threshold"] = TRANSPARENT_GRID_THRESHOLD
@@ -213,14 +194,11 @@ def builtin_sweep_rows(data: Path, choice: AutoChoice, out: Path,
 
 def auto_train_config(manifest: Optional[dict], data: Path, run: Path, user_options: dict,
                       target_psnr: Optional[float] = None, time_budget: Optional[float] = None,
-                      bench_table: Optional[Path] = None,
-                      max_seconds: Optional[float] = None) -> AutoChoice:
+                      bench_table: Optional[Path] = None) -> AutoChoice:
     """Everything ``nerfbot train --method auto`` decides: the method and options from the
-    manifest for the training budget (``time_budget``, else ``max_seconds``; ``user_options``
-    override them), and with a target or time budget, the training seconds from a bench table
-    (or a built-in sweep in ``run/auto_sweep``)."""
-    choice = choose_from_manifest(manifest, time_budget if time_budget is not None
-                                  else max_seconds)
+    manifest (``user_options`` override them), and with a target or time budget, the training
+    seconds from a bench table (or a built-in sweep in ``run/auto_sweep``)."""
+    choice = choose_from_manifest(manifest)
     for k, v in user_options.items():
         if choice.options.get(k) != v:
             choice.reasons.append(f"option {k}={v} given by the user")

@@ -90,8 +90,7 @@ def cmd_train(args) -> int:
 
         try:
             choice = auto_train_config(ds.manifest, Path(args.data), out, options,
-                                       args.target_psnr, args.time_budget, args.bench_table,
-                                       max_seconds=args.max_seconds)
+                                       args.target_psnr, args.time_budget, args.bench_table)
         except (ValueError, FileNotFoundError) as err:
             raise SystemExit(f"nerfbot train --method auto: {err}")
         method, options = choice.method, choice.options

@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from nerfbot.auto import (TRANSPARENT_GRID_THRESHOLD, VIEW_DEPENDENCE_MIN_SECONDS,
-                          auto_train_config, bench_rows, choose_budget, choose_from_manifest)
+from nerfbot.auto import (TRANSPARENT_GRID_THRESHOLD, auto_train_config, bench_rows,
+                          choose_budget, choose_from_manifest)
 
 
 def _manifest(**kw):
@@ -21,18 +21,6 @@ def test_static_specular_scene_keeps_view_dependence_and_no_conditioning():
     c = choose_from_manifest(_manifest())
     assert c.method == "ngp" and c.conditioning == "static"
     assert "sh_degree" not in c.options and not c.query_defaults
-
-
-def test_specular_scene_on_a_short_budget_gets_view_independent_colour():
-    short = choose_from_manifest(_manifest(), budget_seconds=VIEW_DEPENDENCE_MIN_SECONDS / 2)
-    assert short.options["sh_degree"] == 0
-    assert any("converges faster" in r for r in short.reasons)
-    long = choose_from_manifest(_manifest(), budget_seconds=VIEW_DEPENDENCE_MIN_SECONDS)
-    assert "sh_degree" not in long.options
-    steps = auto_train_config(_manifest(), "unused", "unused", {}, max_seconds=None)
-    assert "sh_degree" not in steps.options  # a step budget: nothing known about time
-    timed = auto_train_config(_manifest(), "unused", "unused", {}, max_seconds=30.0)
-    assert timed.options["sh_degree"] == 0
 
 
 def test_matte_scene_gets_view_independent_colour():
