@@ -48,7 +48,9 @@ AUTO = "auto"
 #: Metrics of a run that are medians in the summary, in table order.
 METRICS = ("psnr", "ssim", "depth_mae_m", "depth_rmse_m", "chamfer_mm", "chamfer_accuracy_mm",
            "chamfer_completeness_mm", "train_seconds", "steps", "steps_per_second",
-           "render_ms_per_image", "render_fps", "peak_rss_mb", "num_params", "mesh_faces")
+           "render_ms_per_image", "render_fps", "peak_rss_mb", "num_params", "size_mb",
+           "mesh_faces", "source_psnr", "source_render_ms_per_image", "render_speedup_vs_source",
+           "psnr_change_vs_source", "bake_seconds")
 #: Counts among METRICS (medians rounded to integers).
 COUNT_METRICS = ("steps", "num_params", "mesh_faces")
 
@@ -189,7 +191,7 @@ def capture_folder(cfg: BenchConfig, spec: dict) -> Path:
 # -- the sweep ---------------------------------------------------------------------------------
 def validate(cfg: BenchConfig) -> None:
     """BenchError for anything wrong before work starts (methods, options, budgets, executor)."""
-    from nerfbot.methods import METHODS, option_names
+    from nerfbot.methods import METHODS, sweep_option_names
 
     if not cfg.methods:
         raise BenchError("no methods given")
@@ -201,8 +203,8 @@ def validate(cfg: BenchConfig) -> None:
         raise BenchError(f"a method is listed twice: {','.join(cfg.methods)}")
     named = [m for m in cfg.methods if m != AUTO]
     for key in cfg.options:
-        if not any(key in option_names(m) for m in named):
-            known = "; ".join(f"{m}: {', '.join(option_names(m))}" for m in named)
+        if not any(key in sweep_option_names(m) for m in named):
+            known = "; ".join(f"{m}: {', '.join(sweep_option_names(m))}" for m in named)
             raise BenchError(f"--option {key}: none of the methods ({', '.join(cfg.methods)}) "
                              f"has this option (known: {known})")
     if cfg.budget_kind not in ("seconds", "steps"):
@@ -235,7 +237,7 @@ def config_key(point: dict) -> str:
 def expand_points(cfg: BenchConfig, sources: list[Source]) -> list[dict]:
     """Every point of the sweep, in sweep order: scene, size, method, option values, budget,
     repeat. A point is a JSON-able dict (see :func:`nerfbot.bench_point.run_point`)."""
-    from nerfbot.methods import option_names
+    from nerfbot.methods import sweep_option_names
 
     points = []
     sizes, budgets = list(dict.fromkeys(cfg.sizes)), list(dict.fromkeys(cfg.budgets))
@@ -246,7 +248,7 @@ def expand_points(cfg: BenchConfig, sources: list[Source]) -> list[dict]:
         # auto decides its own options from the scene manifest: it takes the fixed settings
         # (options given one value) but is never swept
         keys = [k for k in cfg.options if len(cfg.options[k]) == 1] if method == AUTO else \
-            [k for k in cfg.options if k in option_names(method)]
+            [k for k in cfg.options if k in sweep_option_names(method)]
         values = [list({json.dumps(v): v for v in cfg.options[k]}.values()) for k in keys]
         for combo in itertools.product(*values):
             options = dict(zip(keys, combo))
@@ -335,6 +337,8 @@ def summarize(points: list[dict], runs: dict) -> list[dict]:
         if p["method"] == AUTO:  # show what auto picked
             row["method"] = f"{AUTO}:{results[0].get('auto_method')}"
             row["options"] = results[0].get("auto_options", "")
+        if results[0].get("source_method"):
+            row["source_method"] = results[0]["source_method"]
         for m in METRICS:
             row[m] = _median([r.get(m) for r in results])
             if m in COUNT_METRICS and row[m] is not None:

@@ -23,6 +23,8 @@ _TABLE = (
     ("render ms", "render_ms_per_image", "{:.1f}", None),
     ("FPS", "render_fps", "{:.2f}", None),
     ("peak RSS MB", "peak_rss_mb", "{:.0f}", None),
+    ("params", "num_params", "{:,}", None),
+    ("model MB", "size_mb", "{:.1f}", None),
     ("FPS x base", "speedup_vs_baseline", "{:.2f}", None),
     ("train time x base", "train_time_ratio", "{:.2f}", None),
 )
@@ -71,6 +73,15 @@ def markdown_table(rows: list[dict], cfg) -> str:
                       f"{r['psnr_gap_to_best']:+.2f} dB behind the best other configuration "
                       f"at budget {r['budget']:g} ({r['best_config']}; negative = ahead), trained "
                       f"{r['train_seconds']:.0f} s vs {r['best_train_seconds']:.0f} s.", ""]
+        for r in (r for r in rows if r["scene"] == scene and r.get("source_method")):
+            lines += [f"`{r['method']}` ({r['options'] or 'defaults'}, budget {r['budget']:g}): "
+                      f"baked in {_cell(r.get('bake_seconds'), '{:.0f}', None)} s from "
+                      f"`{r['source_method']}` ({_cell(r.get('source_psnr'), '{:.2f}', None)} dB, "
+                      f"{_cell(r.get('source_render_ms_per_image'), '{:.1f}', None)} ms per "
+                      f"image): renders "
+                      f"{_cell(r.get('render_speedup_vs_source'), '{:.1f}', None)}x faster, "
+                      f"PSNR {_cell(r.get('psnr_change_vs_source'), '{:+.2f}', None)} dB, "
+                      f"{_cell(r.get('size_mb'), '{:.1f}', None)} MB.", ""]
     return "\n".join(lines)
 
 

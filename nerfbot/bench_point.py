@@ -184,7 +184,9 @@ def run_point(point: dict, run_dir: Path) -> dict:
     import sims  # noqa: F401  (MUJOCO_GL before mujoco)
     import torch
 
+    from nerfbot.baking import baked_size_mb
     from nerfbot.data import load_dataset
+    from nerfbot.methods import get_method, option_names
     from nerfbot.evaluation import evaluate
     from nerfbot.models import num_params
     from nerfbot.training import CHECKPOINT, TrainConfig, Trainer
@@ -201,23 +203,41 @@ def run_point(point: dict, run_dir: Path) -> dict:
     if method == "auto":  # what `nerfbot train --method auto` picks for this scene
         from nerfbot.auto import choose_from_manifest
 
-        from nerfbot.methods import option_names
-
-        choice = choose_from_manifest(ds.manifest, None if steps_budget else float(budget))
+        choice = choose_from_manifest(ds.manifest)
         method = choice.method
         fixed = {k: v for k, v in options.items() if k in option_names(method)}
         options = {**choice.options, **fixed}
         resolved = {"auto_method": method, "auto_options": json.dumps(options, sort_keys=True)}
-    config = TrainConfig(method=method, seed=int(point["seed"]),
+    recipe = get_method(method).baked_from
+    train_method = recipe.source if recipe else method
+    train_options = {k: v for k, v in options.items() if k in option_names(train_method)}
+    config = TrainConfig(method=train_method, seed=int(point["seed"]),
                          max_steps=int(budget) if steps_budget else None,
                          max_seconds=None if steps_budget else float(budget),
-                         options=options, checkpoint_every_seconds=math.inf,
+                         options=train_options, checkpoint_every_seconds=math.inf,
                          progress=False)
     scoped = reset_peak_rss()
     rss_before = _status_mb("VmRSS")
     trainer = Trainer(ds, run_dir, config)
     summary = trainer.train()
-    metrics = evaluate(trainer.model, ds, "test", max_images=point.get("eval_images"))
+    model = trainer.model
+    metrics = evaluate(model, ds, "test", max_images=point.get("eval_images"))
+    if recipe:  # bake the trained source, then measure the baked renderer against it
+        source_metrics = metrics
+        t_bake = time.perf_counter()
+        bake_options = {k: v for k, v in options.items() if k in option_names(method)}
+        model, _, extra = recipe.bake(model, trainer.spec, ds, bake_options, int(point["seed"]),
+                                      False)
+        resolved["bake_seconds"] = time.perf_counter() - t_bake
+        metrics = evaluate(model, ds, "test", max_images=point.get("eval_images"))
+        src_ms = source_metrics["render_ms_per_image"]
+        resolved.update(
+            source_method=train_method, source_psnr=_finite(source_metrics["psnr"]),
+            source_render_ms_per_image=src_ms,
+            render_speedup_vs_source=src_ms / metrics["render_ms_per_image"],
+            psnr_change_vs_source=_finite(metrics["psnr"] - source_metrics["psnr"]),
+            source_size_mb=baked_size_mb(trainer.model),
+            **{f"bake_{k}": v for k, v in extra.items() if isinstance(v, (int, float, str))})
     peak = peak_rss_mb()
     ms = metrics["render_ms_per_image"]
     w, h = (int(v) for v in ds.sizes[0])
@@ -230,13 +250,14 @@ def run_point(point: dict, run_dir: Path) -> dict:
         "render_ms_per_image": ms, "render_fps": (1e3 / ms) if ms else None,
         "psnr": _finite(metrics["psnr"]), "ssim": _finite(metrics["ssim"]),
         "depth_mae_m": metrics["depth_mae_m"], "depth_rmse_m": metrics["depth_rmse_m"],
-        "num_params": num_params(trainer.model), "image_size": f"{w}x{h}",
+        "num_params": num_params(model), "size_mb": baked_size_mb(model),
+        "image_size": f"{w}x{h}",
         "train_views": len(ds.indices("train")), "test_views": metrics["num_images"],
         "torch_threads": torch.get_num_threads(), "host": platform.node(), **resolved,
     }
     chamfer = point.get("chamfer")
     if chamfer:
-        result.update(_chamfer(trainer.model, ds, chamfer, int(point["seed"])))
+        result.update(_chamfer(model, ds, chamfer, int(point["seed"])))
     if not point.get("keep_checkpoint"):
         (run_dir / CHECKPOINT).unlink(missing_ok=True)
     result["point_seconds"] = time.perf_counter() - t_start

@@ -7,7 +7,7 @@ the registry.
 from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
-from typing import Callable
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -15,13 +15,21 @@ from nerfbot.background import make_background
 from nerfbot.conditioning import Conditioning
 from nerfbot.fields.articulated import ArticulatedField, ArticulatedFieldConfig
 from nerfbot.fields.dnerf import DNeRFField, DNeRFFieldConfig
+from nerfbot.fields.fastnerf import FastNeRFField, FastNeRFFieldConfig
+from nerfbot.fields.fastnerf_cache import FastNeRFCacheConfig, FastNeRFCacheModel
+from nerfbot.fields.kilonerf import (KILONERF_OCCUPANCY_DEFAULTS, KiloNeRFConfig, KiloNeRFField,
+                                      KiloNeRFFieldConfig, KiloNeRFModel)
 from nerfbot.fields.mipnerf import (MipNeRFField, MipNeRFFieldConfig, MipNeRFModel,
                                     MipNeRFModelConfig)
 from nerfbot.fields.nerf import NeRFField, NeRFFieldConfig
+from nerfbot.fields.nerfsh import NeRFSHField, NeRFSHFieldConfig
 from nerfbot.fields.ngp import NGPField, NGPFieldConfig
+from nerfbot.fields.plenoxels import PlenoxelField, PlenoxelFieldConfig
+from nerfbot.fields.tensorf import TensoRFField, TensoRFFieldConfig
 from nerfbot.fields.tnerf import TNeRFField, TNeRFFieldConfig
 from nerfbot.models import (HierarchicalModel, HierarchicalModelConfig, Model, OccupancyModel,
                             OccupancyModelConfig)
+from nerfbot.plenoctree import PlenOctreeConfig, PlenOctreeModel
 
 
 @dataclass(frozen=True)
@@ -44,6 +52,21 @@ class MethodSpec:
     lr_final_factor: float
     description: str
     configs: tuple = ()
+    baked_from: Optional["BakeRecipe"] = None
+    """Set for renderers made by ``nerfbot bake`` from a trained run rather than trained."""
+
+
+@dataclass(frozen=True)
+class BakeRecipe:
+    """How a baked method is made: train ``source``, then ``bake`` the trained model.
+
+    ``bake(model, spec, dataset, options, seed, progress) -> (baked model, baked spec, extra)``
+    takes the baked method's own options (e.g. ``np``, ``nd`` or ``depth``); ``extra`` is a
+    JSON-able report (sizes, counts) written to the baked run's ``bake.json``.
+    """
+
+    source: str
+    bake: Callable[..., tuple]
 
 
 def _apply(config, options: dict):
@@ -55,6 +78,12 @@ def _apply(config, options: dict):
 
 def _build_ngp(aabb, background, options, seed, conditioning) -> Model:
     field = NGPField(aabb, _apply(NGPFieldConfig(), options), seed=seed)
+    return OccupancyModel(field, make_background(background), aabb,
+                          _apply(OccupancyModelConfig(), options))
+
+
+def _build_plenoxels(aabb, background, options, seed, conditioning) -> Model:
+    field = PlenoxelField(aabb, _apply(PlenoxelFieldConfig(), options), seed=seed)
     return OccupancyModel(field, make_background(background), aabb,
                           _apply(OccupancyModelConfig(), options))
 
@@ -92,10 +121,63 @@ def _build_articulated(aabb, background, options, seed, conditioning) -> Model:
                           _apply(OccupancyModelConfig(), options))
 
 
+def _build_plenoctree(aabb, background, options, seed, conditioning) -> Model:
+    field = NeRFSHField(aabb, _apply(NeRFSHFieldConfig(), options), seed=seed)
+    return OccupancyModel(field, make_background(background), aabb,
+                          _apply(OccupancyModelConfig(), options))
+
+
+def _build_tensorf(aabb, background, options, seed, conditioning) -> Model:
+    field = TensoRFField(aabb, _apply(TensoRFFieldConfig(), options), seed=seed)
+    return OccupancyModel(field, make_background(background), aabb,
+                          _apply(OccupancyModelConfig(), options))
+
+
+def _build_fastnerf(aabb, background, options, seed, conditioning) -> Model:
+    field = FastNeRFField(aabb, _apply(FastNeRFFieldConfig(), options), seed=seed)
+    return OccupancyModel(field, make_background(background), aabb,
+                          _apply(OccupancyModelConfig(), options))
+
+
+def _build_kilonerf(aabb, background, options, seed, conditioning) -> Model:
+    field = KiloNeRFField(aabb, _apply(KiloNeRFFieldConfig(), options), seed=seed)
+    return KiloNeRFModel(field, make_background(background), aabb,
+                         _apply(OccupancyModelConfig(**KILONERF_OCCUPANCY_DEFAULTS), options),
+                         _apply(KiloNeRFConfig(), options))
+
+
+def _build_fastnerf_cache(aabb, background, options, seed, conditioning) -> Model:
+    return FastNeRFCacheModel(aabb, make_background(background),
+                              _apply(FastNeRFCacheConfig(), options))
+
+
+def _bake_fastnerf_cache(model, spec, dataset, options, seed, progress):
+    from nerfbot.fields.fastnerf import bake_cache
+
+    cfg = _apply(FastNeRFCacheConfig(), options)
+    return bake_cache(model, spec, cfg.np, cfg.nd, progress=progress)
+
+
+def _bake_plenoctree_octree(model, spec, dataset, options, seed, progress):
+    from nerfbot.plenoctree import bake_octree
+
+    cfg = _apply(PlenOctreeConfig(), options)
+    return bake_octree(model, spec, cfg.depth, dataset=dataset, seed=seed, progress=progress)
+
+
+def _build_plenoctree_octree(aabb, background, options, seed, conditioning) -> Model:
+    return PlenOctreeModel(aabb, make_background(background),
+                           _apply(PlenOctreeConfig(), options))
+
+
 METHODS: dict[str, MethodSpec] = {
     "ngp": MethodSpec(_build_ngp, lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
                       description="Instant-NGP hash grid + occupancy-grid marching (fast default)",
                       configs=(NGPFieldConfig, OccupancyModelConfig)),
+    "plenoxels": MethodSpec(_build_plenoxels, lr=1e-1, adam_eps=1e-15, lr_final_factor=0.1,
+                            description="Plenoxels: sparse voxel grid of density + SH colour, "
+                                        "no network, coarse-to-fine with pruning",
+                            configs=(PlenoxelFieldConfig, OccupancyModelConfig)),
     "nerf": MethodSpec(_build_nerf, lr=5e-4, adam_eps=1e-8, lr_final_factor=0.1,
                        description="vanilla NeRF, positional encoding, coarse + fine (reference)",
                        configs=(NeRFFieldConfig, HierarchicalModelConfig)),
@@ -103,6 +185,10 @@ METHODS: dict[str, MethodSpec] = {
                           description="mip-NeRF: cones, integrated positional encoding, one MLP "
                                       "for coarse + fine (anti-aliased at lower resolutions)",
                           configs=(MipNeRFFieldConfig, MipNeRFModelConfig)),
+    "tensorf": MethodSpec(_build_tensorf, lr=2e-2, adam_eps=1e-15, lr_final_factor=0.1,
+                          description="TensoRF: vector-matrix factorised grids, coarse-to-fine "
+                                      "upsampling + occupancy-grid marching",
+                          configs=(TensoRFFieldConfig, OccupancyModelConfig)),
     "tnerf": MethodSpec(_build_tnerf, lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
                         description="T-NeRF: time or joints as an extra input of an NGP field",
                         configs=(NGPFieldConfig, TNeRFFieldConfig, OccupancyModelConfig)),
@@ -115,12 +201,49 @@ METHODS: dict[str, MethodSpec] = {
                                           "kinematics of the joints",
                               configs=(NGPFieldConfig, ArticulatedFieldConfig,
                                        OccupancyModelConfig)),
+    "plenoctree": MethodSpec(_build_plenoctree, lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
+                             description="PlenOctrees' NeRF-SH: hash grid -> density + SH colour "
+                                         "(no direction input); bake with `nerfbot bake --octree`",
+                             configs=(NeRFSHFieldConfig, OccupancyModelConfig)),
+    "plenoctree_octree": MethodSpec(_build_plenoctree_octree, lr=1e-2, adam_eps=1e-15,
+                                    lr_final_factor=0.1,
+                                    description="a baked PlenOctree (made by `nerfbot bake "
+                                                "--octree` from a plenoctree run; not trained "
+                                                "from scratch)",
+                                    configs=(PlenOctreeConfig,),
+                                    baked_from=BakeRecipe("plenoctree", _bake_plenoctree_octree)),
+    "fastnerf": MethodSpec(_build_fastnerf, lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
+                           description="FastNeRF: position net (hash grid) x direction net, "
+                                       "colour = sigmoid(sum_i beta_i(d) u_i(x)); cacheable "
+                                       "with `nerfbot bake --cache`",
+                           configs=(FastNeRFFieldConfig, OccupancyModelConfig)),
+    "kilonerf": MethodSpec(_build_kilonerf, lr=5e-3, adam_eps=1e-8, lr_final_factor=0.1,
+                           description="KiloNeRF: a 16^3 grid of tiny MLPs, distilled from a "
+                                       "trained run (option teacher_run) then fine-tuned",
+                           configs=(KiloNeRFFieldConfig, KiloNeRFConfig,
+                                    OccupancyModelConfig)),
+    "fastnerf_cache": MethodSpec(_build_fastnerf_cache, lr=1e-2, adam_eps=1e-15,
+                                 lr_final_factor=0.1,
+                                 description="baked FastNeRF cache (made by `nerfbot bake "
+                                             "--cache NP,ND`; not trainable)",
+                                 configs=(FastNeRFCacheConfig,),
+                                 baked_from=BakeRecipe("fastnerf", _bake_fastnerf_cache)),
 }
 
 
 def option_names(method: str) -> list[str]:
     """Names of the config fields a method accepts as ``--option key=value``."""
     return sorted(f.name for c in get_method(method).configs for f in fields(c))
+
+
+def sweep_option_names(method: str) -> list[str]:
+    """Options a bench point of ``method`` takes: its own and, for a baked method, those of
+    the method it is baked from (used to train the source)."""
+    recipe = get_method(method).baked_from
+    names = set(option_names(method))
+    if recipe is not None:
+        names |= set(option_names(recipe.source))
+    return sorted(names)
 
 
 def get_method(name: str) -> MethodSpec:

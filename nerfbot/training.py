@@ -60,7 +60,10 @@ class TrainConfig:
     """Show a progress bar."""
 
     def validate(self) -> None:
-        get_method(self.method)
+        recipe = get_method(self.method).baked_from
+        if recipe is not None:
+            raise ValueError(f"method {self.method!r} is baked, not trained: train "
+                             f"--method {recipe.source}, then run `nerfbot bake` on that run")
         if self.max_steps is None and self.max_seconds is None:
             raise ValueError("set a training budget: max_steps and/or max_seconds")
         if self.max_steps is not None and self.max_steps < 0:

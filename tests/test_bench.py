@@ -323,8 +323,8 @@ def test_bad_method_dataset_option_name_it(tiny_capture, tmp_path, capsys):
                      str(tmp_path / "o"), "--no-progress", *args])
         return code, capsys.readouterr().err
 
-    code, msg = err("--data", str(tiny_capture[0]), "--methods", "ngp,plenoxels")
-    assert code == 2 and "plenoxels" in msg and "ngp" in msg
+    code, msg = err("--data", str(tiny_capture[0]), "--methods", "ngp,nerfacto")
+    assert code == 2 and "nerfacto" in msg and "plenoxels" in msg  # lists the known methods
     code, msg = err("--data", str(tmp_path / "no_such_dataset"), "--methods", "ngp")
     assert code == 2 and "no_such_dataset" in msg and "tabletop" in msg  # lists the built-ins
     bad = tmp_path / "broken"
@@ -368,3 +368,31 @@ def test_auto_is_a_bench_method_compared_with_the_best_other_configuration(tiny_
     assert auto["best_train_seconds"] == best["train_seconds"]
     assert "sh_degree" not in json.loads(auto["options"])  # the tabletop has specular materials
     assert "behind the best other configuration" in (out / "bench.md").read_text()
+
+
+def test_baked_method_trains_its_source_bakes_and_compares(tiny_capture, tmp_path):
+    """`--methods fastnerf_cache`: the point trains `fastnerf` on the budget (with the source's
+    options), bakes the cache with the point's own options, and reports both renderers."""
+    out = tmp_path / "baked"
+    assert main(["bench", "--data", str(tiny_capture[0]), "--methods", "fastnerf_cache",
+                 "--budget-kind", "steps", "--budgets", "30", "--option", "np=32",
+                 "--option", "components=4", "--out", str(out), "--no-chamfer",
+                 "--no-progress", *CHEAP]) == 0
+    doc = json.loads((out / "bench.json").read_text())
+    assert not doc["failures"]
+    (row,), (run,) = doc["summary"], doc["runs"]
+    assert row["method"] == "fastnerf_cache" and row["source_method"] == "fastnerf"
+    assert row["steps"] == 30 and run["bake_np"] == 32
+    assert row["source_psnr"] > 10 and row["psnr"] > 10
+    assert row["psnr_change_vs_source"] == pytest.approx(row["psnr"] - row["source_psnr"])
+    assert row["render_speedup_vs_source"] == pytest.approx(
+        row["source_render_ms_per_image"] / row["render_ms_per_image"], rel=1e-6)
+    assert 0 < row["size_mb"] and row["bake_seconds"] > 0
+    assert "baked in" in (out / "bench.md").read_text()
+
+
+def test_a_baked_method_cannot_be_trained(tiny_capture):
+    from nerfbot.training import TrainConfig
+
+    with pytest.raises(ValueError, match="fastnerf_cache.*--method fastnerf.*nerfbot bake"):
+        TrainConfig(method="fastnerf_cache", max_steps=1).validate()

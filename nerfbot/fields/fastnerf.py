@@ -1,0 +1,396 @@
+"""FastNeRF field (Garbin et al. 2021): a position network and a direction network whose outputs
+factorise the colour, so both can be cached on grids (:func:`bake_cache`).
+
+* F_pos: x -> (sigma, u_1..u_D), D radiance components u_i in R^3;
+* F_dir: d -> (beta_1..beta_D), D weights;
+* rgb = sigmoid(sum_i beta_i u_i), sigma = trunc_exp(raw density).
+
+The sigmoid sits *after* the weighted sum (the paper's inner product, squashed), so the cached
+grids interpolate linearly and the colour stays in (0, 1) for any interpolated components.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from nerfbot.encodings import FrequencyEncoding, HashEncoding, SHEncoding
+from nerfbot.fields.base import BoxNormalizer, Field, mlp, trunc_exp
+from nerfbot.kernels.fastnerf_cache import BRICK
+
+#: Raw densities (the argument of exp) are stored clamped to this range: above 15 trunc_exp
+#: saturates anyway, below -20 the density (< 2e-9 /m) renders nothing.
+RAW_DENSITY_RANGE = (-20.0, 15.0)
+
+
+@dataclass
+class FastNeRFFieldConfig:
+    components: int = 8
+    """D, radiance components of F_pos and weights of F_dir."""
+    position_encoding: str = "hash"
+    """"hash": hash grid + small MLP (fast on CPU); "frequency": the paper's 8-layer MLP on the
+    positional encoding (slow on CPU)."""
+    n_levels: int = 16
+    """Hash grid: resolution levels."""
+    n_features: int = 2
+    """Hash grid: features per level."""
+    log2_hashmap_size: int = 17
+    """Hash grid: log2 of the table rows per level."""
+    min_res: int = 16
+    """Hash grid: cells per axis of the coarsest level."""
+    max_res: int = 512
+    """Hash grid: cells per axis of the finest level."""
+    hidden: int = 64
+    """Hash variant: width of the position MLP."""
+    position_layers: int = 2
+    """Hash variant: hidden layers of the position MLP."""
+    pos_freqs: int = 10
+    """Frequency variant: frequencies of the positional encoding."""
+    freq_width: int = 256
+    """Frequency variant: width of the 8-layer MLP."""
+    freq_depth: int = 8
+    """Frequency variant: layers of the MLP (the input is concatenated again at layer 4)."""
+    freq_lr_scale: float = 0.05
+    """Frequency variant: learning rate relative to the method's (hash tables want 1e-2, a deep
+    MLP on a positional encoding 5e-4)."""
+    dir_sh_degree: int = 4
+    """Spherical-harmonics degree of F_dir's input."""
+    dir_hidden: int = 64
+    """Width of F_dir."""
+    dir_layers: int = 2
+    """Hidden layers of F_dir."""
+    initial_transmittance: float = 0.2
+    """Transmittance of a ray crossing the whole cube at initialisation (density bias, as in
+    :class:`~nerfbot.fields.ngp.NGPFieldConfig`)."""
+    mlp_lr_scale: float = 1.0
+    """Hash variant: learning rate of the MLPs relative to the hash table's."""
+    backend: str = "numba"
+    """Hash-encoding implementation: "numba" or "torch"."""
+
+
+class _FrequencyMLP(nn.Module):
+    """gamma(x) -> 8 ReLU layers (input concatenated again at layer ``skip``) -> out_dim."""
+
+    def __init__(self, n_freqs: int, width: int, depth: int, out_dim: int, skip: int = 4):
+        super().__init__()
+        self.enc = FrequencyEncoding(3, n_freqs)
+        self.skip = skip
+        dims = [self.enc.out_dim] + [width] * depth
+        self.layers = nn.ModuleList(
+            nn.Linear(dims[i] + (self.enc.out_dim if i == skip else 0), width) for i in range(depth))
+        self.head = nn.Linear(width, out_dim)
+
+    def forward(self, x01: torch.Tensor) -> torch.Tensor:
+        e = self.enc(x01 * 2.0 - 1.0)
+        h = e
+        for i, layer in enumerate(self.layers):
+            if i == self.skip:
+                h = torch.cat([h, e], -1)
+            h = F.relu(layer(h))
+        return self.head(h)
+
+
+class FastNeRFField(Field):
+    """sigma = trunc_exp(F_pos(x)[0]); rgb = sigmoid(sum_i F_dir(d)_i * F_pos(x)[1 + 3i : 4 + 3i]).
+
+    ``feat`` of :meth:`density` are the D x 3 components u, flattened (N, 3D) as u[i, c] at
+    3i + c. Points outside the scene bounds have zero density.
+    """
+
+    def __init__(self, aabb, config: FastNeRFFieldConfig | None = None, seed: int = 0):
+        super().__init__()
+        self.config = cfg = config or FastNeRFFieldConfig()
+        if cfg.components < 1:
+            raise ValueError(f"components must be >= 1, got {cfg.components}")
+        if not 0.0 < cfg.initial_transmittance < 1.0:
+            raise ValueError(f"initial_transmittance must be in (0, 1), got {cfg.initial_transmittance}")
+        self.normalize = BoxNormalizer(aabb)
+        out_dim = 1 + 3 * cfg.components
+        if cfg.position_encoding == "hash":
+            self.encoding = HashEncoding(cfg.n_levels, cfg.n_features, cfg.log2_hashmap_size,
+                                         cfg.min_res, cfg.max_res, backend=cfg.backend, seed=seed)
+            self.position_net = mlp(self.encoding.out_dim, cfg.hidden, cfg.position_layers, out_dim)
+        elif cfg.position_encoding == "frequency":
+            self.encoding = None
+            self.position_net = _FrequencyMLP(cfg.pos_freqs, cfg.freq_width, cfg.freq_depth, out_dim)
+        else:
+            raise ValueError(f"position_encoding must be 'hash' or 'frequency', "
+                             f"got {cfg.position_encoding!r}")
+        self.dir_encoding = SHEncoding(cfg.dir_sh_degree)
+        self.direction_net = mlp(self.dir_encoding.out_dim, cfg.dir_hidden, cfg.dir_layers,
+                                 cfg.components)
+        diagonal = math.sqrt(3.0) * float(self.normalize.cube_size)
+        self.density_bias = math.log(-math.log(cfg.initial_transmittance) / diagonal)
+
+    @property
+    def components(self) -> int:
+        return self.config.components
+
+    # -- the two networks ----------------------------------------------------------------------
+    def position_outputs(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """F_pos. x: (N, 3) world points -> raw density (N,) (sigma = trunc_exp(raw), before the
+        bounds mask) and components u (N, 3D)."""
+        x01 = self.normalize(x)
+        h = self.position_net(self.encoding(x01) if self.encoding is not None else x01)
+        return h[:, 0] + self.density_bias, h[:, 1:]
+
+    def direction_weights(self, d: torch.Tensor) -> torch.Tensor:
+        """F_dir. d: (N, 3) unit directions -> beta (N, D)."""
+        return self.direction_net(self.dir_encoding(d))
+
+    # -- Field interface -----------------------------------------------------------------------
+    def density(self, x: torch.Tensor, cond: Optional[torch.Tensor] = None):
+        raw, u = self.position_outputs(x)
+        sigma = trunc_exp(raw)
+        sigma = torch.where(self.normalize.inside(x), sigma, torch.zeros_like(sigma))
+        return sigma, u
+
+    def color(self, feat: torch.Tensor, d: torch.Tensor, cond: Optional[torch.Tensor] = None):
+        return combine_components(self.direction_weights(d), feat)
+
+    def init_mean_color(self, rgb: torch.Tensor) -> None:
+        """Start at colour ``rgb`` (3,) everywhere: every beta starts near 1 (F_dir's output bias)
+        and every component near logit(rgb) / D (F_pos's output bias), so sum_i beta_i u_i is
+        logit(rgb) while the random weights keep the components distinct."""
+        d = self.components
+        with torch.no_grad():
+            self.direction_net[-1].bias.fill_(1.0)
+            head = self.position_net[-1] if isinstance(self.position_net, nn.Sequential) \
+                else self.position_net.head
+            logit = torch.logit(rgb.clamp(0.02, 0.98)).to(head.bias) / d
+            head.bias[1:].copy_(logit.repeat(d))
+
+    def param_groups(self) -> list[dict]:
+        """Hash variant: the table at scale 1, the MLPs at ``mlp_lr_scale``. Frequency variant:
+        everything at ``freq_lr_scale``."""
+        if self.encoding is None:
+            return [{"params": list(self.parameters()), "lr_scale": self.config.freq_lr_scale}]
+        mlps = [p for n, p in self.named_parameters() if not n.startswith("encoding.")]
+        return [{"params": [self.encoding.table], "lr_scale": 1.0},
+                {"params": mlps, "lr_scale": self.config.mlp_lr_scale}]
+
+
+def combine_components(beta: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """rgb (N, 3) = sigmoid(sum_i beta_i u_i) from beta (N, D) and u (N, 3D) (u[i, c] at 3i + c)."""
+    n, d = beta.shape
+    return torch.sigmoid(torch.einsum("nd,ndc->nc", beta, u.reshape(n, d, 3)))
+
+
+# ----------------------------------------------------------------------------- octahedral map
+def octahedral_encode(d: torch.Tensor) -> torch.Tensor:
+    """Unit directions (N, 3) -> octahedral coordinates (N, 2) in [-1, 1]^2.
+
+    The upper hemisphere (z >= 0) fills the diamond |u| + |v| <= 1, the lower one the four
+    corners, folded across the diamond's edges; every direction has one point, and the square's
+    border is mirrored (``(1, v)`` and ``(1, -v)`` are the same direction), so bilinear lookups
+    on a vertex grid symmetric about 0 are continuous on the sphere.
+    """
+    p = d / d.abs().sum(-1, keepdim=True).clamp_min(1e-30)
+    x, y, z = p.unbind(-1)
+    sx = torch.where(x >= 0, 1.0, -1.0)
+    sy = torch.where(y >= 0, 1.0, -1.0)
+    lower = z < 0
+    u = torch.where(lower, (1.0 - y.abs()) * sx, x)
+    v = torch.where(lower, (1.0 - x.abs()) * sy, y)
+    return torch.stack([u, v], -1)
+
+
+def octahedral_decode(uv: torch.Tensor) -> torch.Tensor:
+    """Octahedral coordinates (N, 2) in [-1, 1]^2 -> unit directions (N, 3)."""
+    u, v = uv.unbind(-1)
+    z = 1.0 - u.abs() - v.abs()
+    lower = z < 0
+    x = torch.where(lower, (1.0 - v.abs()) * torch.where(u >= 0, 1.0, -1.0), u)
+    y = torch.where(lower, (1.0 - u.abs()) * torch.where(v >= 0, 1.0, -1.0), v)
+    return F.normalize(torch.stack([x, y, z], -1), dim=-1)
+
+
+def direction_grid(nd: int) -> torch.Tensor:
+    """The ND x ND unit directions (ND, ND, 3) at the vertices of the octahedral grid: vertex
+    (i, j) at (u, v) = (-1 + 2i / (ND - 1), -1 + 2j / (ND - 1))."""
+    t = torch.linspace(-1.0, 1.0, nd, dtype=torch.float64)
+    uv = torch.stack(torch.meshgrid(t, t, indexing="ij"), -1).reshape(-1, 2)
+    return octahedral_decode(uv).float().reshape(nd, nd, 3)
+
+
+# ----------------------------------------------------------------------------- baking
+def bake_cache(model, spec: dict, np_: int, nd: int, progress: bool = True,
+               alpha_threshold: float = 1e-3, batch_bricks: int = 2048):
+    """Cache a trained ``fastnerf`` model's two networks on grids (FastNeRF's caching step).
+
+    F_pos is cached on a grid of NP cells per axis over the scene cube (NP rounded up to a
+    multiple of the brick size B = 4; vertex spacing cube / NP), sparsely, in bricks of B^3
+    cells that store their (B + 1)^3 vertices together (a trilinear lookup reads one brick, a
+    few adjacent cache lines, and consecutive samples along a ray mostly the same brick). A
+    brick is stored when it holds an *occupied* cell: one the source's occupancy grid marks
+    occupied where the density at some corner exceeds ``alpha_threshold / dt`` (dt: the
+    source's marching step), i.e. where one marching step could be more than
+    ``alpha_threshold`` opaque. Trilinear interpolation of the raw density (the argument of
+    exp) never exceeds its corners, so an empty cell hides at most that much opacity per step.
+    F_dir is cached on the ND x ND vertices of an octahedral map.
+
+    Args:
+        model: the loaded ``fastnerf`` model (an OccupancyModel around a :class:`FastNeRFField`).
+        spec: its run spec (method, aabb, background, options, seed, conditioning).
+        np_: cells per axis of the position cache (>= 1); nd: vertices per axis of the direction
+            cache (>= 2).
+        progress: show progress bars while evaluating F_pos.
+        alpha_threshold: opacity per marching step below which a cell counts as empty.
+        batch_bricks: bricks per F_pos evaluation.
+    Returns:
+        (baked FastNeRFCacheModel, its spec, extra) with extra = cache_mb, occupied_cells, bricks,
+        np (as rounded), nd, alpha_threshold.
+    """
+    from nerfbot.fields.fastnerf_cache import FastNeRFCacheModel, build_cache_model
+    from nerfbot.kernels import fastnerf_cache as kc
+
+    field = getattr(model, "field", None)
+    if not isinstance(field, FastNeRFField) or not hasattr(model, "grid"):
+        raise ValueError(f"bake --cache needs a 'fastnerf' run, got method {spec.get('method')!r}")
+    np_, nd = int(np_), int(nd)
+    if np_ < 1 or nd < 2:
+        raise ValueError(f"--cache NP,ND needs NP >= 1 and ND >= 2, got {np_},{nd}")
+    if not alpha_threshold >= 0.0:
+        raise ValueError(f"alpha_threshold must be >= 0, got {alpha_threshold}")
+    model.eval()
+    nb = -(-np_ // BRICK)
+    nc = nb * BRICK
+    cube_min = field.normalize.cube_min.double().cpu().numpy()
+    spacing = float(field.normalize.cube_size) / nc
+    src_occ = model.grid.occupied.cpu().numpy().astype(np.uint8)
+    sigma_min = alpha_threshold / float(model.dt_min)
+    raw_min = math.log(sigma_min) if sigma_min > 0 else -math.inf
+
+    # cells overlapping occupied source cells, gathered per brick: (NB^3, B, B, B)
+    lo, hi = kc.overlap_ranges(nc, src_occ.shape[0])
+    cells = np.zeros((nc,) * 3, np.uint8)
+    kc.candidate_cells(src_occ, lo, hi, cells)
+    cells = cells.reshape(nb, BRICK, nb, BRICK, nb, BRICK).transpose(0, 2, 4, 1, 3, 5) \
+        .reshape(nb ** 3, BRICK, BRICK, BRICK)
+    candidates = np.flatnonzero(cells.any(axis=(1, 2, 3)))
+    order = morton_code(np.stack(np.unravel_index(candidates, (nb,) * 3), -1))
+    candidates = candidates[np.argsort(order, kind="stable")]
+
+    # pass 1: which candidate bricks hold an occupied cell, and the channel ranges
+    keep = np.zeros(candidates.size, bool)
+    lo_ch = np.full(1 + 3 * field.components, np.inf)
+    hi_ch = np.full(1 + 3 * field.components, -np.inf)
+    n_cells = 0
+    for s, v in _brick_outputs(field, candidates, nb, cube_min, spacing, batch_bricks, progress,
+                               "bake: occupancy"):
+        occupied = (_cell_max(v[..., 0]) > raw_min) & (cells[candidates[s:s + len(v)]] != 0)
+        cells[candidates[s:s + len(v)]] = occupied
+        kept = occupied.any(axis=(1, 2, 3))
+        keep[s:s + len(v)] = kept
+        n_cells += int(occupied.sum())
+        if kept.any():
+            flat = v[kept].reshape(-1, v.shape[-1])
+            lo_ch = np.minimum(lo_ch, flat.min(0))
+            hi_ch = np.maximum(hi_ch, flat.max(0))
+    stored = candidates[keep]
+    bricks = np.full(nb ** 3, -1, np.int32)
+    bricks[stored] = np.arange(stored.size, dtype=np.int32)
+
+    # the coarse occupancy the renderer marches: cells of the source's grid holding occupied
+    # cache cells (and occupied in the source: it never sampled its empty cells)
+    coarse = np.zeros_like(src_occ)
+    occupied_cells = cells.reshape(nb, nb, nb, BRICK, BRICK, BRICK).transpose(0, 3, 1, 4, 2, 5) \
+        .reshape(nc, nc, nc)
+    kc.mark_coarse(np.ascontiguousarray(occupied_cells), lo, hi, coarse)
+    coarse &= src_occ
+    del cells, occupied_cells
+
+    # pass 2: F_pos at the stored bricks' vertices, quantised to int16 per channel
+    scale, offset = quantization(lo_ch, hi_ch)
+    v1 = BRICK + 1
+    values = np.empty((stored.size, v1, v1, v1, lo_ch.size), np.int16)
+    for s, v in _brick_outputs(field, stored, nb, cube_min, spacing, batch_bricks, progress,
+                               "bake: cache"):
+        values[s:s + len(v)] = quantize(v, scale, offset)
+
+    with torch.no_grad():
+        dir_weights = field.direction_weights(direction_grid(nd).reshape(-1, 3)).float()
+    dir_weights = dir_weights.reshape(nd, nd, -1)
+
+    options = {"np": nc, "nd": nd}
+    src_opts = spec.get("options", {})
+    for key in ("render_steps", "cone_angle", "early_stop_transmittance"):
+        if key in src_opts:
+            options[key] = src_opts[key]
+    baked_spec = {**spec, "method": "fastnerf_cache", "options": options}
+    baked: FastNeRFCacheModel = build_cache_model(baked_spec)
+    baked.field.set_cache(torch.from_numpy(bricks.reshape((nb,) * 3)), torch.from_numpy(values),
+                          torch.from_numpy(scale), torch.from_numpy(offset),
+                          torch.from_numpy(coarse), dir_weights)
+    baked.background.load_state_dict(model.background.state_dict())
+    baked.eval()
+    extra = {"cache_mb": round(baked.field.cache_bytes() / 1e6, 3), "occupied_cells": n_cells,
+             "bricks": int(stored.size), "np": nc, "nd": nd, "alpha_threshold": alpha_threshold}
+    return baked, baked_spec, extra
+
+
+def _cell_max(v: np.ndarray) -> np.ndarray:
+    """(n, B+1, B+1, B+1) vertex values -> (n, B, B, B) the largest of each cell's 8 corners."""
+    bs = v.shape[1] - 1
+    out = v[:, :-1, :-1, :-1]
+    for c in range(1, 8):
+        a, b, d = (c >> 2) & 1, (c >> 1) & 1, c & 1
+        out = np.maximum(out, v[:, a:a + bs, b:b + bs, d:d + bs])
+    return out
+
+
+@torch.no_grad()
+def _brick_outputs(field: FastNeRFField, bricks: np.ndarray, nb: int, cube_min, spacing: float,
+                   batch: int, progress: bool, desc: str):
+    """Yield (first, values) for batches of bricks (flat indices into (NB, NB, NB)): F_pos at
+    their vertices, values (n, B+1, B+1, B+1, 1 + 3D) float32 numpy, the raw density (channel 0)
+    clamped to :data:`RAW_DENSITY_RANGE`."""
+    from tqdm.auto import tqdm
+
+    v1 = BRICK + 1
+    local = np.stack(np.meshgrid(*[np.arange(v1)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    for s in tqdm(range(0, bricks.size, batch), desc=desc, unit="batch", disable=not progress,
+                  leave=False):
+        ijk = np.stack(np.unravel_index(bricks[s:s + batch], (nb,) * 3), -1) * BRICK
+        vertices = (ijk[:, None, :] + local[None]).reshape(-1, 3)
+        x = torch.from_numpy((cube_min + vertices * spacing).astype(np.float32))
+        raw, u = field.position_outputs(x)
+        v = torch.cat([raw.float().clamp(*RAW_DENSITY_RANGE)[:, None], u.float()], 1)
+        yield s, v.numpy().reshape(len(ijk), v1, v1, v1, -1)
+
+
+def morton_code(ijk: np.ndarray) -> np.ndarray:
+    """Z-order codes (N,) int64 of grid coordinates ijk (N, 3) < 2^21: sorting rows by them
+    keeps the corners of a cell, and the cells along a ray, close together in memory."""
+    def spread(v):
+        v = v.astype(np.int64) & 0x1FFFFF
+        v = (v | (v << 32)) & 0x1F00000000FFFF
+        v = (v | (v << 16)) & 0x1F0000FF0000FF
+        v = (v | (v << 8)) & 0x100F00F00F00F00F
+        v = (v | (v << 4)) & 0x10C30C30C30C30C3
+        return (v | (v << 2)) & 0x1249249249249249
+
+    return (spread(ijk[:, 0]) << 2) | (spread(ijk[:, 1]) << 1) | spread(ijk[:, 2])
+
+
+def quantization(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-channel 16-bit fixed point for values in [lo, hi] (C,): scale, offset (C,) float32
+    with v ~= q * scale + offset, q in [-32767, 32767] (error <= scale / 2). Dequantisation is
+    affine, so it commutes with trilinear interpolation: renderers interpolate the integers
+    and dequantise once per sample."""
+    lo = np.where(np.isfinite(lo), lo, 0.0)
+    hi = np.where(np.isfinite(hi), hi, 0.0)
+    offset = (0.5 * (lo + hi)).astype(np.float32)
+    scale = np.maximum((hi - lo) / 65534.0, 1e-12).astype(np.float32)
+    return scale, offset
+
+
+def quantize(v: np.ndarray, scale: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """v (..., C) float -> int16 codes for :func:`quantization`'s scale and offset."""
+    return np.rint((v - offset) / scale).clip(-32767, 32767).astype(np.int16)

@@ -1,0 +1,449 @@
+"""Numba CPU kernels of the FastNeRF cache: baking helpers and the fused renderer.
+
+The cache (see :mod:`nerfbot.fields.fastnerf_cache`) is a grid of NC = NB * B cells per axis over
+the scene cube (vertex spacing h = cube_size / NC), stored sparsely in bricks of B^3 cells:
+
+* ``bricks`` (NB, NB, NB) int32: the id of brick (I, J, K), or -1 where nothing is stored;
+* ``values`` (n_bricks * (B+1)^3, 1 + 3D) int16: the (B+1)^3 vertices of each brick, vertex
+  (a, b, c) of brick ``id`` (grid vertex (B I + a, B J + b, B K + c)) at row
+  ``((id * (B+1) + a) * (B+1) + b) * (B+1) + c``, dequantised as ``q * scale + offset`` per
+  channel: channel 0 is the raw density (sigma = exp(min(raw, 15))), channel 1 + 3i + c the
+  component u_i[c];
+* ``occ`` (G, G, G) uint8: coarse cells of the same cube holding occupied cache cells (for
+  empty-space skipping);
+* ``dir_weights`` (ND, ND, D) float32: beta at the vertices of the octahedral direction map.
+
+The renderer uses B = :data:`BRICK`. A brick holds all 8 corners of each of its cells, so a
+trilinear lookup reads one brick, and consecutive samples along a ray mostly the same one. Points in bricks that are not stored have
+zero density. The plain-torch twin of the renderer is
+:meth:`nerfbot.fields.fastnerf_cache.FastNeRFCacheModel.render_reference`; tests assert they agree.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+#: Rays per parallel work item of the renderer (scratch arrays are allocated once per item).
+RAY_BLOCK = 64
+#: B, cells per edge of a cache brick (a power of two: the renderer splits cell indices into
+#: brick and offset with shifts).
+BRICK = 4
+BRICK_SHIFT = 2
+BRICK_MASK = BRICK - 1
+#: Coarse cells per edge of a block of the pooled occupancy the renderer skips first.
+POOL = 4
+#: The renderer gathers a ray's samples in rounds of ROUND_MIN, doubling up to ROUND_MAX: their
+#: cache lines are fetched together (the lookups are memory-bound), and colours are computed
+#: only up to where the ray saturates.
+ROUND_MIN = 4
+ROUND_MAX = 32
+#: Largest raw density: exp(15) = 3.3e6 /m, trunc_exp's ceiling.
+RAW_MAX = 15.0
+#: fastmath without "nnan" / "ninf": the marcher relies on comparisons with large distances.
+_FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}
+
+
+# ----------------------------------------------------------------------------- baking helpers
+def overlap_ranges(n_cells: int, g: int) -> tuple[np.ndarray, np.ndarray]:
+    """For each of ``n_cells`` fine cells per axis of the cube, the first and last of the ``g``
+    coarse cells it overlaps: lo, hi (n_cells,) int64."""
+    i = np.arange(n_cells, dtype=np.float64)
+    ratio = g / n_cells
+    lo = np.floor(i * ratio).astype(np.int64)
+    hi = np.ceil((i + 1) * ratio).astype(np.int64) - 1
+    return np.clip(lo, 0, g - 1), np.clip(np.maximum(hi, lo), 0, g - 1)
+
+
+@njit(parallel=True, cache=True)
+def candidate_cells(occ, lo, hi, out):
+    """out[i, j, k] = 1 where fine cell (i, j, k) overlaps an occupied coarse cell of ``occ``
+    (G, G, G) uint8; lo / hi from :func:`overlap_ranges`."""
+    n = out.shape[0]
+    for i in prange(n):
+        for j in range(n):
+            for k in range(n):
+                hit = 0
+                for a in range(lo[i], hi[i] + 1):
+                    for b in range(lo[j], hi[j] + 1):
+                        for c in range(lo[k], hi[k] + 1):
+                            if occ[a, b, c] != 0:
+                                hit = 1
+                out[i, j, k] = hit
+
+
+@njit(cache=True)
+def mark_coarse(cells, lo, hi, out):
+    """out (G, G, G) uint8 = 1 at every coarse cell overlapping a marked cell of ``cells``."""
+    m = cells.shape[0]
+    for i in range(m):
+        for j in range(m):
+            for k in range(m):
+                if cells[i, j, k] != 0:
+                    for a in range(lo[i], hi[i] + 1):
+                        for b in range(lo[j], hi[j] + 1):
+                            for c in range(lo[k], hi[k] + 1):
+                                out[a, b, c] = 1
+
+
+# ----------------------------------------------------------------------------- renderer
+@njit(inline="always")
+def _octahedral(dx, dy, dz):
+    """Unit direction -> octahedral coordinates (u, v) in [-1, 1]^2 (see
+    :func:`nerfbot.fields.fastnerf.octahedral_encode`)."""
+    s = abs(dx) + abs(dy) + abs(dz)
+    s = max(s, 1e-30)
+    px, py, pz = dx / s, dy / s, dz / s
+    if pz >= 0:
+        return px, py
+    sx = 1.0 if px >= 0 else -1.0
+    sy = 1.0 if py >= 0 else -1.0
+    return (1.0 - abs(py)) * sx, (1.0 - abs(px)) * sy
+
+
+@njit(inline="always")
+def _direction_weights(dx, dy, dz, dir_weights, beta):
+    """Bilinear lookup of beta (D,) for one direction, written into ``beta``."""
+    nd = dir_weights.shape[0]
+    u, v = _octahedral(dx, dy, dz)
+    fu = (u + 1.0) * 0.5 * (nd - 1)
+    fv = (v + 1.0) * 0.5 * (nd - 1)
+    iu = min(max(int(math.floor(fu)), 0), nd - 2)
+    iv = min(max(int(math.floor(fv)), 0), nd - 2)
+    wu = fu - iu
+    wv = fv - iv
+    w00 = (1.0 - wu) * (1.0 - wv)
+    w10 = wu * (1.0 - wv)
+    w01 = (1.0 - wu) * wv
+    w11 = wu * wv
+    for i in range(beta.shape[0]):
+        beta[i] = (w00 * dir_weights[iu, iv, i] + w10 * dir_weights[iu + 1, iv, i]
+                   + w01 * dir_weights[iu, iv + 1, i] + w11 * dir_weights[iu + 1, iv + 1, i])
+
+
+@njit(inline="always")
+def _cell_exit(rx, ry, rz, ivx, ivy, ivz, cx, cy, cz, size):
+    """Ray distance at which a ray leaves cell (cx, cy, cz) of edge ``size`` of a grid whose
+    corner is the origin; (rx, ry, rz): the ray origin relative to that corner, iv*: inverse
+    direction components (0 for a zero component)."""
+    t_exit = 1e30
+    if ivx > 0:
+        t_exit = min(t_exit, ((cx + 1) * size - rx) * ivx)
+    elif ivx < 0:
+        t_exit = min(t_exit, (cx * size - rx) * ivx)
+    if ivy > 0:
+        t_exit = min(t_exit, ((cy + 1) * size - ry) * ivy)
+    elif ivy < 0:
+        t_exit = min(t_exit, (cy * size - ry) * ivy)
+    if ivz > 0:
+        t_exit = min(t_exit, ((cz + 1) * size - rz) * ivz)
+    elif ivz < 0:
+        t_exit = min(t_exit, (cz * size - rz) * ivz)
+    return t_exit
+
+
+@njit(inline="always")
+def _box_clip(ox, oy, oz, dx, dy, dz, aabb):
+    """(t_near, t_far) of a ray in the box ``aabb`` (2, 3), as :func:`nerfbot.sampling.ray_aabb`
+    (near 0; a ray that misses gets 0, 0)."""
+    lo = -1e30
+    hi = 1e30
+    for a in range(3):
+        o = ox if a == 0 else (oy if a == 1 else oz)
+        d = dx if a == 0 else (dy if a == 1 else dz)
+        if abs(d) < 1e-12:
+            if o < aabb[0, a] or o > aabb[1, a]:
+                return 0.0, 0.0
+            continue
+        t0 = (aabb[0, a] - o) / d
+        t1 = (aabb[1, a] - o) / d
+        lo = max(lo, min(t0, t1))
+        hi = min(hi, max(t0, t1))
+    lo = max(lo, 0.0)
+    if hi > lo:
+        return lo, hi
+    return 0.0, 0.0
+
+
+@njit(inline="always")
+def _skip(t, tm, dt, t_exit, tf, dt_min, dt_max, cone):
+    """Advance ``t`` by whole marching steps until the step's midpoint reaches ``t_exit``."""
+    if cone == 0.0 or dt_min == dt_max:
+        return t + max(1.0, np.ceil((t_exit - tm) / dt)) * dt
+    t += dt
+    while t < tf:
+        dt = min(max(t * cone, dt_min), dt_max)
+        if t + 0.5 * dt >= t_exit:
+            break
+        t += dt
+    return t
+
+
+@njit(inline="always")
+def _trilinear(values, row, v1, c, wx, wy, wz):
+    """Channel ``c`` of ``values`` interpolated in the brick cell whose first corner is ``row``
+    (corners at +1, +v1, +v1^2 along z, y, x), with local coordinates (wx, wy, wz)."""
+    one = np.float32(1.0)
+    r1 = row + v1 * v1
+    q00 = (one - wz) * np.float32(values[row, c]) + wz * np.float32(values[row + 1, c])
+    q01 = (one - wz) * np.float32(values[row + v1, c]) + wz * np.float32(values[row + v1 + 1, c])
+    q10 = (one - wz) * np.float32(values[r1, c]) + wz * np.float32(values[r1 + 1, c])
+    q11 = (one - wz) * np.float32(values[r1 + v1, c]) + wz * np.float32(values[r1 + v1 + 1, c])
+    return (one - wx) * ((one - wy) * q00 + wy * q01) + wx * ((one - wy) * q10 + wy * q11)
+
+
+@njit(inline="always")
+def _interpolate(values, row, v1, wx, wy, wz, acc):
+    """Channels 1.. of ``values`` interpolated like :func:`_trilinear`, written into ``acc``."""
+    one = np.float32(1.0)
+    ux, uy, uz = one - wx, one - wy, one - wz
+    w0, w1, w2, w3 = ux * uy * uz, ux * uy * wz, ux * wy * uz, ux * wy * wz
+    w4, w5, w6, w7 = wx * uy * uz, wx * uy * wz, wx * wy * uz, wx * wy * wz
+    r0, r2, r4 = row, row + v1, row + v1 * v1
+    r6 = r4 + v1
+    for c in range(1, acc.shape[0]):
+        acc[c] = (w0 * np.float32(values[r0, c]) + w1 * np.float32(values[r0 + 1, c])
+                  + w2 * np.float32(values[r2, c]) + w3 * np.float32(values[r2 + 1, c])
+                  + w4 * np.float32(values[r4, c]) + w5 * np.float32(values[r4 + 1, c])
+                  + w6 * np.float32(values[r6, c]) + w7 * np.float32(values[r6 + 1, c]))
+
+
+@njit(parallel=True, fastmath=_FAST, cache=True)
+def render(origins, dirs, aabb, occ_box, background, bricks, n_bricks, values, scale, offset,
+           occ, occ2, dir_weights, cmin, cube_size, dt_min, dt_max, cone, stop_transmittance, block_cap,
+           rgb, opacity, depth, far, counts, src_start, s_ts, s_te, s_sigma, s_w):
+    """Render rays through the cache: clip to the box, march, look up, composite with early
+    termination.
+
+    Marching matches :func:`nerfbot.kernels.marching` (from the box entry, steps
+    ``dt = clamp(t * cone, dt_min, dt_max)``, a sample [t, min(t + dt, t_far)] where the coarse
+    cell at t + dt / 2 is occupied, evaluated at the interval's midpoint), except that empty
+    cells are jumped over (those of ``occ2`` first, then those of ``occ``). A ray stops once its
+    transmittance falls below ``stop_transmittance``. Samples are looked up in rounds (see
+    :data:`ROUND_MIN`): first the densities of a whole round, whose memory accesses overlap,
+    then colours and compositing in order.
+
+    Args:
+        origins, dirs: (R, 3) float32, unit directions; aabb: (2, 3) float64 scene bounds;
+            occ_box: (2, 3) float64 box around the occupied cells (marching skips to it).
+        background: (R, 3) float32 colour behind each ray.
+        bricks, values, scale, offset, occ, dir_weights: the cache (module docstring), values
+            as (n_bricks * (B+1)^3, C) with B = :data:`BRICK`; n_bricks: stored bricks.
+        occ2: (G2, G2, G2) uint8, occ max-pooled over :data:`POOL`^3 blocks.
+        cmin: (3,) float64 cube corner; cube_size: cube edge, metres.
+        block_cap: scratch entries per block of :data:`RAY_BLOCK` rays: the rays of block b
+            write their samples one after the other into ``s_*[b * block_cap:]``; samples that
+            find the block's room full are only counted (render those rays again with more).
+    Outputs:
+        rgb (R, 3), opacity (R,), depth (R,) expected ray distance (``far`` for empty rays),
+        far (R,) box exit, counts (R,) int64 samples composited, src_start (R,) int64 where each
+        ray's samples start in the scratch; s_ts, s_te, s_sigma, s_w: per-sample interval,
+        density and weight (float32).
+    """
+    n_rays = origins.shape[0]
+    n_ch = values.shape[1]
+    n_comp = (n_ch - 1) // 3
+    v1 = BRICK + 1
+    nc = bricks.shape[0] * BRICK
+    g = occ.shape[0]
+    g2 = occ2.shape[0]
+    inv_h = nc / cube_size
+    cs = cube_size / g
+    inv_cs = g / cube_size
+    cs2 = cs * POOL
+    inv_cs2 = inv_cs / POOL
+    n_blocks = (n_rays + RAY_BLOCK - 1) // RAY_BLOCK
+    for blk in prange(n_blocks):
+        acc = np.empty(n_ch, np.float32)
+        rows = np.empty(ROUND_MAX, np.int64)
+        wts = np.empty((ROUND_MAX, 3), np.float32)
+        tss = np.empty(ROUND_MAX, np.float64)
+        tes = np.empty(ROUND_MAX, np.float64)
+        sig = np.empty(ROUND_MAX, np.float32)
+        beta = np.empty(max(n_comp, 1), np.float32)
+        coef = np.empty(max(3 * n_comp, 1), np.float32)
+        cursor = blk * block_cap
+        room_end = cursor + block_cap
+        for r in range(blk * RAY_BLOCK, min(n_rays, (blk + 1) * RAY_BLOCK)):
+            ox, oy, oz = np.float64(origins[r, 0]), np.float64(origins[r, 1]), \
+                np.float64(origins[r, 2])
+            dx, dy, dz = np.float64(dirs[r, 0]), np.float64(dirs[r, 1]), np.float64(dirs[r, 2])
+            t, tf = _box_clip(ox, oy, oz, dx, dy, dz, aabb)
+            rx, ry, rz = ox - cmin[0], oy - cmin[1], oz - cmin[2]
+            ivx = 1.0 / dx if dx != 0.0 else 0.0
+            ivy = 1.0 / dy if dy != 0.0 else 0.0
+            ivz = 1.0 / dz if dz != 0.0 else 0.0
+            trans = 1.0
+            c0 = 0.0
+            c1 = 0.0
+            c2 = 0.0
+            dsum = 0.0
+            n = 0
+            b0 = np.float32(0.0)
+            b1 = np.float32(0.0)
+            b2 = np.float32(0.0)
+            if t < tf and n_bricks > 0:
+                # colour logits are affine in the interpolated integers: fold beta and scales
+                _direction_weights(dx, dy, dz, dir_weights, beta)
+                for i in range(n_comp):
+                    coef[3 * i] = beta[i] * scale[1 + 3 * i]
+                    coef[3 * i + 1] = beta[i] * scale[2 + 3 * i]
+                    coef[3 * i + 2] = beta[i] * scale[3 + 3 * i]
+                    b0 += beta[i] * offset[1 + 3 * i]
+                    b1 += beta[i] * offset[2 + 3 * i]
+                    b2 += beta[i] * offset[3 + 3 * i]
+            # march only across the box of the occupied cells, on the same step lattice
+            t_end = tf
+            if t < tf and n_bricks > 0:
+                b0_, b1_ = _box_clip(ox, oy, oz, dx, dy, dz, occ_box)
+                if b1_ <= b0_:
+                    t_end = t
+                else:
+                    t_end = min(tf, b1_)
+                    dt = min(max(t * cone, dt_min), dt_max)
+                    if t + 0.5 * dt < b0_:
+                        t = _skip(t, t + 0.5 * dt, dt, b0_, tf, dt_min, dt_max, cone)
+            want = ROUND_MIN
+            alive = n_bricks > 0
+            while alive and t < t_end:
+                # 1. march to the next ``want`` samples in stored bricks
+                m = 0
+                while m < want and t < t_end:
+                    dt = min(max(t * cone, dt_min), dt_max)
+                    tm = t + 0.5 * dt
+                    px = rx + tm * dx
+                    py = ry + tm * dy
+                    pz = rz + tm * dz
+                    hx = int(math.floor(px * inv_cs2))
+                    hy = int(math.floor(py * inv_cs2))
+                    hz = int(math.floor(pz * inv_cs2))
+                    if hx < 0 or hy < 0 or hz < 0 or hx >= g2 or hy >= g2 or hz >= g2 \
+                            or occ2[hx, hy, hz] == 0:
+                        t_exit = _cell_exit(rx, ry, rz, ivx, ivy, ivz, hx, hy, hz, cs2)
+                        t = _skip(t, tm, dt, t_exit, tf, dt_min, dt_max, cone)
+                        continue
+                    gx = int(math.floor(px * inv_cs))
+                    gy = int(math.floor(py * inv_cs))
+                    gz = int(math.floor(pz * inv_cs))
+                    if gx < 0 or gy < 0 or gz < 0 or gx >= g or gy >= g or gz >= g \
+                            or occ[gx, gy, gz] == 0:
+                        t_exit = _cell_exit(rx, ry, rz, ivx, ivy, ivz, gx, gy, gz, cs)
+                        t = _skip(t, tm, dt, t_exit, tf, dt_min, dt_max, cone)
+                        continue
+                    te = min(t + dt, tf)
+                    ts = t
+                    t += dt
+                    tmid = 0.5 * (ts + te)
+                    fx = (rx + tmid * dx) * inv_h
+                    fy = (ry + tmid * dy) * inv_h
+                    fz = (rz + tmid * dz) * inv_h
+                    ix = min(max(int(math.floor(fx)), 0), nc - 1)
+                    iy = min(max(int(math.floor(fy)), 0), nc - 1)
+                    iz = min(max(int(math.floor(fz)), 0), nc - 1)
+                    bid = bricks[ix >> BRICK_SHIFT, iy >> BRICK_SHIFT, iz >> BRICK_SHIFT]
+                    if bid < 0:
+                        continue
+                    rows[m] = ((bid * v1 + (ix & BRICK_MASK)) * v1 + (iy & BRICK_MASK)) * v1 \
+                        + (iz & BRICK_MASK)
+                    wts[m, 0] = min(max(fx - ix, 0.0), 1.0)
+                    wts[m, 1] = min(max(fy - iy, 0.0), 1.0)
+                    wts[m, 2] = min(max(fz - iz, 0.0), 1.0)
+                    tss[m] = ts
+                    tes[m] = te
+                    m += 1
+                if m == 0:
+                    break
+                # 2. densities of all of them (independent loads: their misses overlap)
+                for s in range(m):
+                    q = _trilinear(values, rows[s], v1, 0, wts[s, 0], wts[s, 1], wts[s, 2])
+                    sig[s] = math.exp(min(q * scale[0] + offset[0], np.float32(RAW_MAX)))
+                # 3. composite up to where the ray saturates, colours only for those samples
+                for s in range(m):
+                    _interpolate(values, rows[s], v1, wts[s, 0], wts[s, 1], wts[s, 2], acc)
+                    sigma = sig[s]
+                    ts = tss[s]
+                    te = tes[s]
+                    tau = min(np.float64(sigma) * max(te - ts, 0.0), 1e4)
+                    e = math.exp(-tau)
+                    w = trans * (1.0 - e)
+                    l0 = b0
+                    l1 = b1
+                    l2 = b2
+                    for i in range(n_comp):
+                        l0 += coef[3 * i] * acc[1 + 3 * i]
+                        l1 += coef[3 * i + 1] * acc[2 + 3 * i]
+                        l2 += coef[3 * i + 2] * acc[3 + 3 * i]
+                    c0 += w / (1.0 + math.exp(-l0))
+                    c1 += w / (1.0 + math.exp(-l1))
+                    c2 += w / (1.0 + math.exp(-l2))
+                    dsum += w * 0.5 * (ts + te)
+                    k = cursor + n
+                    if k < room_end:
+                        s_ts[k] = ts
+                        s_te[k] = te
+                        s_sigma[k] = sigma
+                        s_w[k] = w
+                    n += 1
+                    trans *= e
+                    if trans < stop_transmittance:
+                        alive = False
+                        break
+                want = min(2 * want, ROUND_MAX)
+            op = 1.0 - trans
+            opacity[r] = op
+            rgb[r, 0] = c0 + trans * background[r, 0]
+            rgb[r, 1] = c1 + trans * background[r, 1]
+            rgb[r, 2] = c2 + trans * background[r, 2]
+            depth[r] = dsum / op if op > 1e-6 else tf
+            far[r] = tf
+            counts[r] = n
+            src_start[r] = cursor
+            cursor += n
+
+
+def occupied_box(occ: np.ndarray, cmin: np.ndarray, cube_size: float) -> np.ndarray:
+    """(2, 3) float64 world box around the set cells of ``occ`` (G, G, G) over the cube at
+    ``cmin`` (an empty box at the corner when none is set)."""
+    g = occ.shape[0]
+    idx = np.argwhere(occ)
+    if not idx.size:
+        return np.stack([cmin, cmin]).astype(np.float64)
+    cell = cube_size / g
+    return np.stack([cmin + idx.min(0) * cell, cmin + (idx.max(0) + 1) * cell]).astype(np.float64)
+
+
+def pool_occupancy(occ: np.ndarray) -> np.ndarray:
+    """(G, G, G) uint8 -> (ceil(G / POOL),) * 3 uint8: 1 where any cell of the block is set."""
+    g = occ.shape[0]
+    g2 = -(-g // POOL)
+    padded = np.zeros((g2 * POOL,) * 3, np.uint8)
+    padded[:g, :g, :g] = occ
+    return padded.reshape(g2, POOL, g2, POOL, g2, POOL).max(axis=(1, 3, 5))
+
+
+@njit(parallel=True, cache=True)
+def pack(counts, src_start, starts, opacity, far, s_ts, s_te, s_sigma, s_w,
+         ray_indices, t_starts, t_ends, sigmas, weights, median):
+    """Copy each ray's samples from its scratch slot (``src_start``) to the packed arrays at
+    ``starts``, and compute the median depth: the midpoint of the first sample where the
+    accumulated weight reaches half the opacity (``far`` for rays with opacity <= 1e-6)."""
+    for r in prange(counts.shape[0]):
+        half = 0.5 * opacity[r]
+        cum = 0.0
+        med = far[r]
+        found = opacity[r] <= 1e-6
+        for j in range(counts[r]):
+            a = src_start[r] + j
+            b = starts[r] + j
+            ray_indices[b] = r
+            t_starts[b] = s_ts[a]
+            t_ends[b] = s_te[a]
+            sigmas[b] = s_sigma[a]
+            weights[b] = s_w[a]
+            cum += s_w[a]
+            if not found and cum >= half:
+                med = 0.5 * (s_ts[a] + s_te[a])
+                found = True
+        median[r] = med

@@ -1,0 +1,277 @@
+"""Numba CPU kernels of KiloNeRF: grouping samples by network, encoding them into the padded
+rows of the batched matmuls, and the single-pass renderer's per-sample and per-ray steps.
+
+:func:`chunk_layout`: samples are assigned to networks (``slots``, -1 for none). Network ``k``
+with ``n_k`` samples gets ``ceil(n_k / C)`` consecutive chunks of ``C`` rows; chunks are ordered
+by network, and within a network samples keep their input order (a stable counting sort).
+Sample ``i`` lands on padded row ``pos[i] = first_chunk[k] * C + rank_k(i)``; padding rows
+belong to no sample. Each layer of all networks is then one batched matmul over the chunks.
+
+Plain-torch twins: :func:`nerfbot.fields.kilonerf.chunk_layout_reference` (layout),
+:class:`nerfbot.encodings.FrequencyEncoding` (:func:`encode_rows`),
+:meth:`nerfbot.fields.kilonerf.KiloNeRFField.slots` (:func:`sample_cells`) and
+:func:`nerfbot.rendering.composite` (:func:`composite_density`); tests assert they agree.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange, types
+from numba.extending import overload
+
+
+@njit(inline="always")
+def _bf16_bits(x):
+    """The bfloat16 nearest to ``x`` (ties to even), as its 16 bits (the upper half of the
+    float32's bits, rounded): how torch converts float32 to bfloat16 (NaN aside)."""
+    u = np.float32(x).view(np.uint32)
+    return np.uint16((u + np.uint32(0x7FFF) + ((u >> np.uint32(16)) & np.uint32(1)))
+                     >> np.uint32(16))
+
+
+def _store(out, r, c, x):
+    """out[r, c] = x; into a uint16 array as bfloat16 bits (see the overload)."""
+
+
+@overload(_store, inline="always")
+def _store_impl(out, r, c, x):
+    if out.dtype == types.uint16:
+        def impl(out, r, c, x):
+            out[r, c] = _bf16_bits(x)
+    else:
+        def impl(out, r, c, x):
+            out[r, c] = x
+    return impl
+
+
+@njit(cache=True, nogil=True)
+def chunk_layout(slots, n_nets, chunk):
+    """The padded layout of ``slots`` (a stable counting sort, O(N + K), serial).
+
+    Args:
+        slots: (N,) int64 network of each sample in [0, n_nets), or -1 (no network).
+        n_nets: K. chunk: C rows per chunk.
+    Returns:
+        pos: (N,) int64 padded row of each sample (-1 where ``slots`` is -1);
+        chunk_net: (n_chunks,) int64 network of each chunk, n_chunks = sum_k ceil(n_k / C).
+    """
+    counts = np.zeros(n_nets, np.int64)
+    for i in range(slots.shape[0]):
+        if slots[i] >= 0:
+            counts[slots[i]] += 1
+    first = np.empty(n_nets, np.int64)
+    n_chunks = 0
+    for k in range(n_nets):
+        first[k] = n_chunks
+        n_chunks += (counts[k] + chunk - 1) // chunk
+    chunk_net = np.empty(n_chunks, np.int64)
+    for k in range(n_nets):
+        for j in range((counts[k] + chunk - 1) // chunk):
+            chunk_net[first[k] + j] = k
+    pos = np.empty(slots.shape[0], np.int64)
+    fill = np.zeros(n_nets, np.int64)
+    for i in range(slots.shape[0]):
+        k = slots[i]
+        if k < 0:
+            pos[i] = -1
+        else:
+            pos[i] = first[k] * chunk + fill[k]
+            fill[k] += 1
+    return pos, chunk_net
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def encode_rows(values, sin_pi, cos_pi, pos, n_freqs, out, col):
+    """Write the frequency encoding of ``values[i]`` into row ``pos[i]`` of ``out``.
+
+    The encoding is :class:`nerfbot.encodings.FrequencyEncoding`'s: ``[v, sin(2^k pi v) for k,
+    cos(2^k pi v) for k]``, frequency-major and coordinate-minor. sin and cos of 2^k pi v come
+    from those of pi v (computed by the caller, vectorised, in float64) by the double-angle
+    formulas in float64: each doubling at most doubles the error, and 2^10 x 1e-16 stays far
+    below float32 resolution.
+
+    Args:
+        values: (M, D) float32 points (local coordinates in [-1, 1], or unit directions).
+        sin_pi, cos_pi: (M, D) float64 sin(pi v) and cos(pi v).
+        pos: (M,) int64 row of each point in ``out`` (-1: skip).
+        n_freqs: F. col: first column written (the encoding fills D * (1 + 2F) columns).
+        out: (rows, >= col + D * (1 + 2F)) float32, rows without a point left untouched.
+    """
+    d = values.shape[1]
+    for i in prange(values.shape[0]):
+        r = pos[i]
+        if r < 0:
+            continue
+        for a in range(d):
+            out[r, col + a] = values[i, a]
+            s = sin_pi[i, a]
+            c = cos_pi[i, a]
+            for k in range(n_freqs):
+                out[r, col + d + d * k + a] = s
+                out[r, col + d + d * (n_freqs + k) + a] = c
+                s, c = 2.0 * s * c, c * c - s * s
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def sample_cells(origins, dirs, ray_indices, t_starts, t_ends, aabb, cube_min, cube_size,
+                 net_index, slots, local):
+    """Network slot and local coordinates of the midpoint of every packed sample.
+
+    Same float32 arithmetic as :meth:`nerfbot.fields.kilonerf.KiloNeRFField.slots` on the
+    points ``o + d * (t_start + t_end) / 2``.
+
+    Args:
+        origins, dirs: (R, 3) float32; ray_indices: (M,) int64; t_starts, t_ends: (M,) float32.
+        aabb: (2, 3) float32 scene bounds; cube_min: (3,) float32; cube_size: float32 scalar.
+        net_index: (G^3,) int64 slot of every network cell (-1: none).
+        slots: (M,) int64 output (-1 outside the bounds or without a network).
+        local: (M, 3) float32 output, local coordinates in [-1, 1].
+    """
+    g = int(round(net_index.shape[0] ** (1.0 / 3.0)))
+    gf = np.float32(g)
+    half, one, two = np.float32(0.5), np.float32(1.0), np.float32(2.0)
+    for i in prange(ray_indices.shape[0]):
+        r = ray_indices[i]
+        tm = half * (t_starts[i] + t_ends[i])
+        inside = True
+        flat = 0
+        for a in range(3):
+            p = origins[r, a] + dirs[r, a] * tm
+            if not (p >= aabb[0, a] and p <= aabb[1, a]):
+                inside = False
+            u = (p - cube_min[a]) / cube_size * gf
+            fl = np.floor(u)
+            j = min(max(int(fl), 0), g - 1) if fl == fl else 0
+            local[i, a] = (u - np.float32(j)) * two - one
+            flat = flat * g + j
+        slots[i] = net_index[flat] if inside else -1
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def composite_density(starts, counts, t_starts, t_ends, pos, raw, density_bias, early_stop,
+                      far, sigmas, weights, opacity, depth, median):
+    """Per-ray compositing of the densities of packed samples, with early termination.
+
+    sigma = exp(min(raw + bias, 15)) (the field's ``trunc_exp``; 0 where ``pos`` is -1). Along
+    each ray, weights are T_i (1 - exp(-sigma_i delta_i)) with T accumulated in float64; once T
+    drops below ``early_stop`` the remaining samples get weight 0 (their colour is never
+    needed). Depth is the weighted mean midpoint, median the first midpoint where the
+    accumulated weight reaches half the opacity; both are ``far`` for rays with opacity
+    <= 1e-6 (:data:`nerfbot.rendering.EMPTY_OPACITY`).
+
+    Args:
+        starts, counts: (R,) int64 packed range of each ray; t_starts, t_ends: (M,) float32.
+        pos: (M,) int64 padded row of each sample (-1: no network); raw: (rows,) float32.
+        density_bias, early_stop: floats. far: (R,) float32.
+        sigmas, weights: (M,) float32 outputs. opacity, depth, median: (R,) float32 outputs.
+    """
+    log_stop = np.log(early_stop)
+    for r in prange(starts.shape[0]):
+        log_t = 0.0
+        acc = 0.0
+        dsum = 0.0
+        done = False
+        a, b = starts[r], starts[r] + counts[r]
+        for i in range(a, b):
+            sigma = np.float32(0.0)
+            if pos[i] >= 0:
+                sigma = np.exp(min(raw[pos[i]] + np.float32(density_bias), np.float32(15.0)))
+            sigmas[i] = sigma
+            if done:
+                weights[i] = 0.0
+                continue
+            tau = min(np.float64(sigma) * max(np.float64(t_ends[i]) - t_starts[i], 0.0), 1e4)
+            w = np.exp(log_t) * -np.expm1(-tau)
+            weights[i] = w
+            acc += w
+            dsum += w * 0.5 * (np.float64(t_starts[i]) + t_ends[i])
+            log_t -= tau
+            done = log_t < log_stop
+        opacity[r] = acc
+        if acc <= 1e-6:
+            depth[r] = far[r]
+            median[r] = far[r]
+            continue
+        depth[r] = dsum / acc
+        cum = 0.0
+        med = far[r]
+        for i in range(a, b):
+            cum += weights[i]
+            if cum >= 0.5 * acc:
+                med = 0.5 * (np.float64(t_starts[i]) + t_ends[i])
+                break
+        median[r] = med
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def encode_padded(values, sin_pi, cos_pi, row_sample, n_freqs, out):
+    """Every row of ``out`` (rows, D (1 + 2F)): the encoding of ``values[row_sample[r]]`` (as
+    :func:`encode_rows`), or zeros where ``row_sample[r]`` is -1 (padding). Writing all rows
+    once costs less than zeroing the buffer first and scattering into it. ``out`` is float32,
+    or uint16 to receive bfloat16 bits (what the bfloat16 matmuls read, without a conversion
+    pass)."""
+    d = values.shape[1]
+    for r in prange(row_sample.shape[0]):
+        i = row_sample[r]
+        if i < 0:
+            for c in range(out.shape[1]):
+                _store(out, r, c, 0.0)
+            continue
+        for a in range(d):
+            _store(out, r, a, values[i, a])
+            s = np.float64(sin_pi[i, a])
+            c = np.float64(cos_pi[i, a])
+            for k in range(n_freqs):
+                _store(out, r, d + d * k + a, s)
+                _store(out, r, d + d * (n_freqs + k) + a, c)
+                s, c = 2.0 * s * c, c * c - s * s
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def padded_rows(src, src_index, row_sample, out):
+    """out[r] = src[src_index[row_sample[r]]], or zeros where ``row_sample[r]`` is -1.
+
+    Args:
+        src: (S, D) float32 (e.g. one encoded direction per ray); src_index: (M,) int64 row of
+        src for every sample (e.g. its ray); row_sample: (rows,) int64; out: (rows, D) float32,
+        or uint16 for bfloat16 bits.
+    """
+    for r in prange(row_sample.shape[0]):
+        i = row_sample[r]
+        if i < 0:
+            for c in range(out.shape[1]):
+                _store(out, r, c, 0.0)
+        else:
+            j = src_index[i]
+            for c in range(out.shape[1]):
+                _store(out, r, c, src[j, c])
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def accumulate_rgb(starts, counts, weights, min_weight, pos, chunk_map, chunk, rgb_rows, out):
+    """out[r] = sum of w_i rgb_i over the samples of ray r whose weight exceeds ``min_weight``
+    (per ray, in sample order: deterministic).
+
+    The colour of sample i is row ``chunk_map[pos[i] // C] * C + pos[i] % C`` of ``rgb_rows``:
+    colours are evaluated on a selection of the trunk's chunks, ``chunk_map`` (n_chunks,)
+    giving each chunk's place in that selection (-1: not evaluated; such chunks hold no sample
+    above ``min_weight``).
+
+    Args:
+        starts, counts: (R,) int64; weights: (M,) float32; pos: (M,) int64 trunk row (-1: none);
+        rgb_rows: (selected rows, 3) float32; out: (R, 3) float32.
+    """
+    for r in prange(starts.shape[0]):
+        acc0 = 0.0
+        acc1 = 0.0
+        acc2 = 0.0
+        for i in range(starts[r], starts[r] + counts[r]):
+            w = weights[i]
+            if w > min_weight and pos[i] >= 0:
+                row = chunk_map[pos[i] // chunk] * chunk + pos[i] % chunk
+                acc0 += w * rgb_rows[row, 0]
+                acc1 += w * rgb_rows[row, 1]
+                acc2 += w * rgb_rows[row, 2]
+        out[r, 0] = acc0
+        out[r, 1] = acc1
+        out[r, 2] = acc2
