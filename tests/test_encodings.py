@@ -304,3 +304,20 @@ def test_frequency_encoding_shape_and_values():
     torch.testing.assert_close(y2, y[:, [3, 4, 6, 7, 9, 10, 15, 16, 18, 19, 21, 22]])
     # leading batch dimensions pass through
     assert enc(x.reshape(2, 5, 3)).shape == (2, 5, 27)
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3, 4])
+def test_sh_kernel_path_matches_float64_reference_and_the_gradient_path(degree):
+    """Directions that need no gradient take the numba kernel; it agrees with the float64 torch
+    basis and with the differentiable float32 path."""
+    gen = torch.Generator().manual_seed(degree)
+    d64 = torch.nn.functional.normalize(torch.randn(5000, 3, generator=gen, dtype=torch.float64),
+                                        dim=-1)
+    d = d64.float()
+    fast = spherical_harmonics(d, degree)
+    assert fast.shape == (5000, (degree + 1) ** 2) and fast.dtype == torch.float32
+    torch.testing.assert_close(fast.double(), spherical_harmonics(d64, degree), atol=2e-6,
+                               rtol=0)
+    graded = spherical_harmonics(d.clone().requires_grad_(True), degree)
+    assert graded.requires_grad or degree == 0  # degree 0 is a constant
+    torch.testing.assert_close(fast, graded.detach(), atol=1e-6, rtol=0)

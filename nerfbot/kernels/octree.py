@@ -27,6 +27,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from nerfbot.kernels.sh import sh_basis
+
 EMPTY = -1
 #: Floating-point liberties of the fused renderer: reassociation and contraction (so the SH
 #: dot products vectorise) but no "finite math only": the walker relies on inf.
@@ -189,42 +191,6 @@ def _ray_box(origins, dirs, r, box):
 
 
 @njit(inline="always")
-def _sh_basis(x, y, z, degree, out):
-    """Real SH basis up to ``degree`` (0..4) of a unit direction into ``out`` (same constants
-    and order as :func:`nerfbot.encodings.spherical_harmonics`)."""
-    out[0] = 0.28209479177387814
-    if degree >= 1:
-        out[1] = -0.4886025119029199 * y
-        out[2] = 0.4886025119029199 * z
-        out[3] = -0.4886025119029199 * x
-    if degree >= 2:
-        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-        out[4] = 1.0925484305920792 * xy
-        out[5] = -1.0925484305920792 * yz
-        out[6] = 0.31539156525252005 * (2 * zz - xx - yy)
-        out[7] = -1.0925484305920792 * xz
-        out[8] = 0.5462742152960396 * (xx - yy)
-        if degree >= 3:
-            out[9] = -0.5900435899266435 * y * (3 * xx - yy)
-            out[10] = 2.890611442640554 * xy * z
-            out[11] = -0.4570457994644658 * y * (4 * zz - xx - yy)
-            out[12] = 0.3731763325901154 * z * (2 * zz - 3 * xx - 3 * yy)
-            out[13] = -0.4570457994644658 * x * (4 * zz - xx - yy)
-            out[14] = 1.445305721320277 * z * (xx - yy)
-            out[15] = -0.5900435899266435 * x * (xx - 3 * yy)
-        if degree >= 4:
-            out[16] = 2.5033429417967046 * xy * (xx - yy)
-            out[17] = -1.7701307697799304 * yz * (3 * xx - yy)
-            out[18] = 0.9461746957575601 * xy * (7 * zz - 1)
-            out[19] = -0.6690465435572892 * yz * (7 * zz - 3)
-            out[20] = 0.10578554691520431 * (zz * (35 * zz - 30) + 3)
-            out[21] = -0.6690465435572892 * xz * (7 * zz - 3)
-            out[22] = 0.47308734787878004 * (xx - yy) * (7 * zz - 1)
-            out[23] = -1.7701307697799304 * xz * (xx - 3 * yy)
-            out[24] = 0.6258357354491761 * (xx * (xx - 3 * yy) - yy * (3 * xx - yy))
-
-
-@njit(inline="always")
 def _sigmoid32(v):
     """float32 logistic function (exp(-v) overflowing to inf gives 0, as it should)."""
     one = np.float32(1.0)
@@ -352,7 +318,7 @@ def octree_render(origins, dirs, box, child, leaf_data, gmin, gsize, stop, backg
             o0, o1, o2 = np.float64(origins[r, 0]), np.float64(origins[r, 1]), np.float64(origins[r, 2])
             d0, d1, d2 = np.float64(dirs[r, 0]), np.float64(dirs[r, 1]), np.float64(dirs[r, 2])
             i0, i1, i2 = _inverse(d0), _inverse(d1), _inverse(d2)
-            _sh_basis(d0, d1, d2, degree, basis)
+            sh_basis(d0, d1, d2, degree, basis)
             t, tf = _ray_box(origins, dirs, r, box)
             level = _reset_stack(nodes, corners, gmin)
             trans = 1.0
