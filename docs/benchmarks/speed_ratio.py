@@ -1,0 +1,36 @@
+"""Render-speed ratios of baked / distilled renderers against their sources, interleaved.
+
+The machine's speed drifts by up to 2x between processes minutes apart, so each pair is
+timed in one process: every test image is rendered by A, then by B, for ROUNDS rounds; the
+figure is the median per-image time of each, and their ratio.
+
+usage: python docs/benchmarks/speed_ratio.py DATA NAME_A RUN_A NAME_B RUN_B [NAME_A RUN_A NAME_B RUN_B ...]
+"""
+import json, sys, time
+import numpy as np, torch
+from nerfbot.data import load_dataset
+from nerfbot.query import render_image
+from nerfbot.training import load_model
+
+ROUNDS = 5
+ds = load_dataset(sys.argv[1])
+idx = ds.indices("test")
+cams = ds.cameras(idx)
+args = sys.argv[2:]
+results = []
+for p in range(0, len(args), 4):
+    (na, ra), (nb, rb) = (args[p], args[p + 1]), (args[p + 2], args[p + 3])
+    models = {na: load_model(ra)[0].eval(), nb: load_model(rb)[0].eval()}
+    for m in models.values():
+        render_image(m, cams, 0)  # compile / warm caches
+    times = {na: [], nb: []}
+    for _ in range(ROUNDS):
+        for i in range(len(idx)):
+            for name, m in models.items():
+                t0 = time.perf_counter()
+                render_image(m, cams, i)
+                times[name].append(time.perf_counter() - t0)
+    ms = {k: 1e3 * float(np.median(v)) for k, v in times.items()}
+    row = {"a": na, "b": nb, "a_ms": round(ms[na], 2), "b_ms": round(ms[nb], 2),
+           "speedup_b_over_a": round(ms[na] / ms[nb], 2), "images": len(idx), "rounds": ROUNDS}
+    print(json.dumps(row), flush=True)
