@@ -186,8 +186,8 @@ def run_point(point: dict, run_dir: Path) -> dict:
 
     from nerfbot.baking import baked_size_mb
     from nerfbot.data import load_dataset
-    from nerfbot.methods import get_method, option_names
     from nerfbot.evaluation import evaluate
+    from nerfbot.methods import get_method, option_names
     from nerfbot.models import num_params
     from nerfbot.training import CHECKPOINT, TrainConfig, Trainer
 
