@@ -4,6 +4,7 @@ the differentiable path, fine-tuning helps, and `nerfbot bake --octree` writes a
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -271,6 +272,36 @@ def test_visibility_pruning_drops_unseen_leaves_and_keeps_the_image(tiny_capture
     before = evaluate(octree, ds, "test", with_ssim=False)["psnr"]
     after = evaluate(pruned, ds, "test", with_ssim=False)["psnr"]
     assert after >= before - 0.5, (before, after)
+
+
+def test_pruning_backs_off_until_the_training_views_keep_their_pixels(tiny_capture, baked):
+    """A threshold that would cut visible leaves (0.5) is halved until the training views
+    render within PRUNE_FIDELITY_DB of the unpruned tree; a zero-weight 'seen' prunes only
+    unseen leaves at the first try."""
+    from nerfbot.plenoctree import PRUNE_FIDELITY_DB, leaf_visibility, prune_with_fidelity
+
+    octree, _, _ = baked
+    ds = load_dataset(tiny_capture[0])
+
+    def copy():
+        m = PlenOctreeModel(octree.aabb, make_background("learned"), PlenOctreeConfig(depth=6))
+        m.field.set_tree(octree.field.child.clone(), octree.field.leaf_data.detach().clone())
+        m.background.load_state_dict(octree.background.state_dict())
+        return m.eval()
+
+    model = copy()
+    seen = leaf_visibility(model, ds, progress=False)
+    used = prune_with_fidelity(model, seen, 0.5, ds)
+    assert used < 0.5 and model.field.n_leaves == int((seen >= used).sum())
+    rays = ds.cameras(ds.indices("train")[:4]).rays(0)
+    with torch.no_grad():
+        mse = torch.nn.functional.mse_loss(model.render_rays(rays).rgb,
+                                           octree.render_rays(rays).rgb)
+    assert -10 * math.log10(max(float(mse), 1e-12)) >= PRUNE_FIDELITY_DB
+    # nothing the cameras see is removed when the threshold is tiny
+    model = copy()
+    assert prune_with_fidelity(model, seen, 1e-12, ds) == 1e-12
+    assert model.field.n_leaves == int((seen >= 1e-12).sum())
 
 
 def test_finetuning_lowers_the_training_loss(tiny_capture, sh_run):
