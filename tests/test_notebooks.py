@@ -28,6 +28,7 @@ NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
 QUICKSTART = NOTEBOOKS / "01_quickstart.ipynb"
 GLASS = NOTEBOOKS / "02_glass_grasping.ipynb"
 ARTICULATED = NOTEBOOKS / "03_articulated.ipynb"
+VARIANTS = NOTEBOOKS / "04_variants.ipynb"
 
 STEPS = 60
 TINY = {"NERFBOT_NB_SIZE": "32", "NERFBOT_NB_VIEWS": "12", "NERFBOT_NB_TEST_VIEWS": "4",
@@ -102,7 +103,7 @@ def articulated(tmp_path_factory):
         return _execute(ARTICULATED, tmp_path_factory.mktemp("nb_articulated"))
 
 
-@pytest.mark.parametrize("path", [QUICKSTART, GLASS, ARTICULATED], ids=lambda p: p.stem)
+@pytest.mark.parametrize("path", [QUICKSTART, GLASS, ARTICULATED, VARIANTS], ids=lambda p: p.stem)
 def test_stored_without_outputs(path):
     nb = nbformat.read(path, as_version=4)
     nbformat.validate(nb)
@@ -110,6 +111,12 @@ def test_stored_without_outputs(path):
     assert nb.metadata["kernelspec"]["name"] == "python3"
     first_code = next(c for c in nb.cells if c.cell_type == "code")
     assert first_code.source.lstrip().startswith("import sims"), "sims must be imported first"
+
+
+@pytest.fixture(scope="module")
+def variants(tmp_path_factory):
+    """The variants tutorial at the tiny budget: six trainings, two bakes."""
+    return _execute(VARIANTS, tmp_path_factory.mktemp("nb_variants"))
 
 
 def _figures(nb) -> list:
@@ -196,3 +203,19 @@ def test_articulated_tutorial_renders_held_out_configurations_and_estimates_join
     assert psnr["articulated"] > 17.0 and math.isfinite(psnr["ngp"])
     assert results["joint_errors"]["door_hinge"] < 15.0
     assert results["joint_errors"]["drawer_slide"] < 60.0
+
+
+def test_variants_tutorial_measures_every_variant(variants):
+    nb, r = variants
+    assert len(_figures(nb)) >= 2  # the trade-off plot and the renders
+    methods = r["methods"]
+    assert set(methods) == {"ngp", "plenoxels", "tensorf", "fastnerf", "fastnerf_cache",
+                            "plenoctree", "plenoctree_octree", "kilonerf"}
+    for name, m in methods.items():
+        # an untrained field scores ~10.5 dB here; every variant must have learnt the scene
+        assert math.isfinite(m["psnr"]) and m["psnr"] > 15.0, (name, m)
+        assert m["render_ms"] > 0 and m["params"] >= 0 and 0 < m["ssim"] <= 1, (name, m)
+    # baking keeps what the source learnt
+    for src, baked in (("fastnerf", "fastnerf_cache"), ("plenoctree", "plenoctree_octree")):
+        assert methods[baked]["psnr"] > methods[src]["psnr"] - 1.5, (src, baked)
+    assert r["cache_mb"] > 0 and r["octree_mb"] > 0

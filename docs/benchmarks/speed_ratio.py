@@ -7,20 +7,25 @@ image-by-image alternation, keep each renderer's tables in cache as in real use:
 image by image in turn made the octree 1.8x slower (its 10 MB of leaves evicted by the
 source's hash tables).
 
-usage: python docs/benchmarks/speed_ratio.py DATA NAME_A RUN_A NAME_B RUN_B [NAME_A RUN_A NAME_B RUN_B ...]
+usage: python docs/benchmarks/speed_ratio.py DATA NAME_A RUN_A NAME_B RUN_B [...more pairs]
 """
-import json, sys, time
-import numpy as np, torch
+import json
+import sys
+import time
+
+import numpy as np
+
 from nerfbot.data import load_dataset
 from nerfbot.query import render_image
 from nerfbot.training import load_model
 
 ROUNDS = 5
+args = sys.argv[2:]
+if len(sys.argv) < 2 or not args or len(args) % 4:
+    sys.exit(__doc__)
 ds = load_dataset(sys.argv[1])
 idx = ds.indices("test")
 cams = ds.cameras(idx)
-args = sys.argv[2:]
-results = []
 for p in range(0, len(args), 4):
     (na, ra), (nb, rb) = (args[p], args[p + 1]), (args[p + 2], args[p + 3])
     models = {na: load_model(ra)[0].eval(), nb: load_model(rb)[0].eval()}
