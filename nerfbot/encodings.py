@@ -11,6 +11,7 @@ from torch import nn
 
 from nerfbot.kernels import hashgrid as _hk
 from nerfbot.kernels import planes as _pk
+from nerfbot.kernels.sh import sh_encode
 
 
 class FrequencyEncoding(nn.Module):
@@ -56,8 +57,6 @@ def spherical_harmonics(d: torch.Tensor, degree: int) -> torch.Tensor:
             and not (d.requires_grad and torch.is_grad_enabled())):
         # no gradient wanted: one numba pass instead of ~60 elementwise torch ops (the learned
         # background of a 128x128 image took 4 ms here, most of a baked renderer's time)
-        from nerfbot.kernels.sh import sh_encode
-
         out = torch.empty(d.shape[0], (degree + 1) ** 2)
         sh_encode(d.detach().contiguous().numpy(), degree, out.numpy())
         return out

@@ -76,16 +76,17 @@ def _apply(config, options: dict):
     return replace(config, **picked)
 
 
-def _build_ngp(aabb, background, options, seed, conditioning) -> Model:
-    field = NGPField(aabb, _apply(NGPFieldConfig(), options), seed=seed)
-    return OccupancyModel(field, make_background(background), aabb,
-                          _apply(OccupancyModelConfig(), options))
+def _static_occupancy(field_cls, config_cls):
+    """Build function of a static field (built as ``field_cls(aabb, config, seed=seed)``)
+    marched over an occupancy grid."""
+    def build(aabb, background, options, seed, conditioning) -> Model:
+        field = field_cls(aabb, _apply(config_cls(), options), seed=seed)
+        return OccupancyModel(field, make_background(background), aabb,
+                              _apply(OccupancyModelConfig(), options))
+    return build
 
 
-def _build_plenoxels(aabb, background, options, seed, conditioning) -> Model:
-    field = PlenoxelField(aabb, _apply(PlenoxelFieldConfig(), options), seed=seed)
-    return OccupancyModel(field, make_background(background), aabb,
-                          _apply(OccupancyModelConfig(), options))
+_build_ngp = _static_occupancy(NGPField, NGPFieldConfig)
 
 
 def _build_nerf(aabb, background, options, seed, conditioning) -> Model:
@@ -117,24 +118,6 @@ def _build_dnerf(aabb, background, options, seed, conditioning) -> Model:
 def _build_articulated(aabb, background, options, seed, conditioning) -> Model:
     field = ArticulatedField(aabb, conditioning, _apply(NGPFieldConfig(), options),
                              _apply(ArticulatedFieldConfig(), options), seed=seed)
-    return OccupancyModel(field, make_background(background), aabb,
-                          _apply(OccupancyModelConfig(), options))
-
-
-def _build_plenoctree(aabb, background, options, seed, conditioning) -> Model:
-    field = NeRFSHField(aabb, _apply(NeRFSHFieldConfig(), options), seed=seed)
-    return OccupancyModel(field, make_background(background), aabb,
-                          _apply(OccupancyModelConfig(), options))
-
-
-def _build_tensorf(aabb, background, options, seed, conditioning) -> Model:
-    field = TensoRFField(aabb, _apply(TensoRFFieldConfig(), options), seed=seed)
-    return OccupancyModel(field, make_background(background), aabb,
-                          _apply(OccupancyModelConfig(), options))
-
-
-def _build_fastnerf(aabb, background, options, seed, conditioning) -> Model:
-    field = FastNeRFField(aabb, _apply(FastNeRFFieldConfig(), options), seed=seed)
     return OccupancyModel(field, make_background(background), aabb,
                           _apply(OccupancyModelConfig(), options))
 
@@ -174,10 +157,12 @@ METHODS: dict[str, MethodSpec] = {
     "ngp": MethodSpec(_build_ngp, lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
                       description="Instant-NGP hash grid + occupancy-grid marching (fast default)",
                       configs=(NGPFieldConfig, OccupancyModelConfig)),
-    "plenoxels": MethodSpec(_build_plenoxels, lr=1e-1, adam_eps=1e-15, lr_final_factor=0.1,
-                            description="Plenoxels: sparse voxel grid of density + SH colour, "
-                                        "no network, coarse-to-fine with pruning",
-                            configs=(PlenoxelFieldConfig, OccupancyModelConfig)),
+    "plenoxels": MethodSpec(
+        _static_occupancy(PlenoxelField, PlenoxelFieldConfig),
+        lr=1e-1, adam_eps=1e-15, lr_final_factor=0.1,
+        description="Plenoxels: sparse voxel grid of density + SH colour, "
+                    "no network, coarse-to-fine with pruning",
+        configs=(PlenoxelFieldConfig, OccupancyModelConfig)),
     "nerf": MethodSpec(_build_nerf, lr=5e-4, adam_eps=1e-8, lr_final_factor=0.1,
                        description="vanilla NeRF, positional encoding, coarse + fine (reference)",
                        configs=(NeRFFieldConfig, HierarchicalModelConfig)),
@@ -185,10 +170,12 @@ METHODS: dict[str, MethodSpec] = {
                           description="mip-NeRF: cones, integrated positional encoding, one MLP "
                                       "for coarse + fine (anti-aliased at lower resolutions)",
                           configs=(MipNeRFFieldConfig, MipNeRFModelConfig)),
-    "tensorf": MethodSpec(_build_tensorf, lr=2e-2, adam_eps=1e-15, lr_final_factor=0.1,
-                          description="TensoRF: vector-matrix factorised grids, coarse-to-fine "
-                                      "upsampling + occupancy-grid marching",
-                          configs=(TensoRFFieldConfig, OccupancyModelConfig)),
+    "tensorf": MethodSpec(
+        _static_occupancy(TensoRFField, TensoRFFieldConfig),
+        lr=2e-2, adam_eps=1e-15, lr_final_factor=0.1,
+        description="TensoRF: vector-matrix factorised grids, coarse-to-fine "
+                    "upsampling + occupancy-grid marching",
+        configs=(TensoRFFieldConfig, OccupancyModelConfig)),
     "tnerf": MethodSpec(_build_tnerf, lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
                         description="T-NeRF: time or joints as an extra input of an NGP field",
                         configs=(NGPFieldConfig, TNeRFFieldConfig, OccupancyModelConfig)),
@@ -201,10 +188,12 @@ METHODS: dict[str, MethodSpec] = {
                                           "kinematics of the joints",
                               configs=(NGPFieldConfig, ArticulatedFieldConfig,
                                        OccupancyModelConfig)),
-    "plenoctree": MethodSpec(_build_plenoctree, lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
-                             description="PlenOctrees' NeRF-SH: hash grid -> density + SH colour "
-                                         "(no direction input); bake with `nerfbot bake --octree`",
-                             configs=(NeRFSHFieldConfig, OccupancyModelConfig)),
+    "plenoctree": MethodSpec(
+        _static_occupancy(NeRFSHField, NeRFSHFieldConfig),
+        lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
+        description="PlenOctrees' NeRF-SH: hash grid -> density + SH colour "
+                    "(no direction input); bake with `nerfbot bake --octree`",
+        configs=(NeRFSHFieldConfig, OccupancyModelConfig)),
     "plenoctree_octree": MethodSpec(_build_plenoctree_octree, lr=1e-2, adam_eps=1e-15,
                                     lr_final_factor=0.1,
                                     description="a baked PlenOctree (made by `nerfbot bake "
@@ -212,11 +201,13 @@ METHODS: dict[str, MethodSpec] = {
                                                 "from scratch)",
                                     configs=(PlenOctreeConfig,),
                                     baked_from=BakeRecipe("plenoctree", _bake_plenoctree_octree)),
-    "fastnerf": MethodSpec(_build_fastnerf, lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
-                           description="FastNeRF: position net (hash grid) x direction net, "
-                                       "colour = sigmoid(sum_i beta_i(d) u_i(x)); cacheable "
-                                       "with `nerfbot bake --cache`",
-                           configs=(FastNeRFFieldConfig, OccupancyModelConfig)),
+    "fastnerf": MethodSpec(
+        _static_occupancy(FastNeRFField, FastNeRFFieldConfig),
+        lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
+        description="FastNeRF: position net (hash grid) x direction net, "
+                    "colour = sigmoid(sum_i beta_i(d) u_i(x)); cacheable "
+                    "with `nerfbot bake --cache`",
+        configs=(FastNeRFFieldConfig, OccupancyModelConfig)),
     "kilonerf": MethodSpec(_build_kilonerf, lr=5e-3, adam_eps=1e-8, lr_final_factor=0.1,
                            description="KiloNeRF: a 16^3 grid of tiny MLPs, distilled from a "
                                        "trained run (option teacher_run) then fine-tuned",
