@@ -11,6 +11,7 @@ corner of the top-left pixel; ``v`` grows downwards.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Optional
@@ -169,14 +170,13 @@ class Cameras:
         """
         w = int(self.width[index]) // downscale
         h = int(self.height[index]) // downscale
-        sx = float(self.width[index]) / w
-        sy = float(self.height[index]) / h
-        v, u = torch.meshgrid(torch.arange(h, dtype=torch.float32),
-                              torch.arange(w, dtype=torch.float32), indexing="ij")
-        px = (u.reshape(-1) + 0.5) * sx
-        py = (v.reshape(-1) + 0.5) * sy
-        return pixel_rays(self.c2w[index], self.fx[index], self.fy[index], self.cx[index],
-                          self.cy[index], px, py, sx, sy)
+        dir_cam, z_per_t, radii = _image_rays_in_camera(
+            w, h, float(self.width[index]) / w, float(self.height[index]) / h,
+            *(float(getattr(self, k)[index]) for k in ("fx", "fy", "cx", "cy")))
+        c2w = self.c2w[index]
+        directions = dir_cam @ c2w[:3, :3].T
+        return Rays(c2w[:3, 3].expand_as(directions).contiguous(), directions,
+                    z_per_t.clone(), radii.clone())
 
     def scaled(self, factor: float) -> "Cameras":
         """The same cameras imaging at ``factor`` times the resolution (``scaled(1 / K)``: K
@@ -245,9 +245,7 @@ def pixel_rays(c2w: torch.Tensor, fx, fy, cx, cy, px: torch.Tensor, py: torch.Te
         pixel_w, pixel_h: size of the pixels the rays stand for, in pixels of these intrinsics
             (> 1 for an image rendered at a lower resolution); sets ``Rays.radii``.
     """
-    dir_cam = torch.stack([(px - cx) / fx, -(py - cy) / fy, -torch.ones_like(px)], dim=-1)
-    norm = dir_cam.norm(dim=-1, keepdim=True)
-    dir_cam = dir_cam / norm
+    dir_cam, z_per_t, radii = camera_frame_rays(fx, fy, cx, cy, px, py, pixel_w, pixel_h)
     rot = c2w[..., :3, :3]
     if rot.dim() == 2:
         directions = dir_cam @ rot.T
@@ -255,9 +253,33 @@ def pixel_rays(c2w: torch.Tensor, fx, fy, cx, cy, px: torch.Tensor, py: torch.Te
     else:
         directions = torch.einsum("rij,rj->ri", rot, dir_cam)
         origins = c2w[:, :3, 3]
+    return Rays(origins.contiguous(), directions.contiguous(), z_per_t, radii)
+
+
+def camera_frame_rays(fx, fy, cx, cy, px: torch.Tensor, py: torch.Tensor, pixel_w=1.0,
+                      pixel_h=1.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The camera-frame half of :func:`pixel_rays` (same arguments, no pose): unit directions
+    (R, 3) in the camera's OpenGL frame, z_per_t (R,) and radii (R,)."""
+    dir_cam = torch.stack([(px - cx) / fx, -(py - cy) / fy, -torch.ones_like(px)], dim=-1)
+    norm = dir_cam.norm(dim=-1, keepdim=True)
+    dir_cam = dir_cam / norm
     z_per_t = (1.0 / norm.squeeze(-1)).contiguous()
     # mip-NeRF: the pixel's width on the z = 1 image plane, times 2 / sqrt(12); along the unit
     # direction that plane lies at distance 1 / z_per_t, so the radius per metre is scaled by z_per_t
     width = torch.sqrt(torch.as_tensor(pixel_w * pixel_h / (fx * fy), dtype=torch.float32))
     radii = (PIXEL_RADIUS * width * z_per_t).contiguous()
-    return Rays(origins.contiguous(), directions.contiguous(), z_per_t, radii)
+    return dir_cam, z_per_t, radii
+
+
+@functools.lru_cache(maxsize=8)
+def _image_rays_in_camera(w: int, h: int, sx: float, sy: float, fx: float, fy: float,
+                          cx: float, cy: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`camera_frame_rays` of every pixel of a W x H image (row-major), pixels ``sx`` x
+    ``sy`` of the intrinsics wide. Cached: the cameras of a dataset share their intrinsics, and
+    these are most of the work of a pose's rays (callers must not write into the tensors)."""
+    v, u = torch.meshgrid(torch.arange(h, dtype=torch.float32),
+                          torch.arange(w, dtype=torch.float32), indexing="ij")
+    px = (u.reshape(-1) + 0.5) * sx
+    py = (v.reshape(-1) + 0.5) * sy
+    f32 = (lambda x: torch.tensor(x, dtype=torch.float32))
+    return camera_frame_rays(f32(fx), f32(fy), f32(cx), f32(cy), px, py, sx, sy)

@@ -15,10 +15,12 @@ import math
 from dataclasses import dataclass
 from typing import Optional
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from nerfbot.background import BakedBackground
 from nerfbot.cameras import Rays
 from nerfbot.fields.base import Field
 from nerfbot.losses import distortion_loss
@@ -72,6 +74,15 @@ class Model(nn.Module, metaclass=abc.ABCMeta):
         if rest:
             groups.append({"params": rest, "lr_scale": 1.0})
         return groups
+
+    def baked_background(self, directions: torch.Tensor) -> np.ndarray:
+        """(R, 3) CPU unit directions -> (R, 3) float32 numpy: the background read from an
+        octahedral table of it (:class:`~nerfbot.background.BakedBackground`, rebuilt when the
+        background changes). The baked renderers' background; its error is bounded by a test."""
+        baked = self.__dict__.get("_baked_background")
+        if baked is None or baked.module is not self.background:
+            baked = self.__dict__["_baked_background"] = BakedBackground(self.background)
+        return baked(directions)
 
     @abc.abstractmethod
     def rays_for_next_batch(self, last_samples: Optional[int], n_rays: int) -> int:

@@ -362,12 +362,13 @@ class PlenOctreeModel(Model):
     def _render_fused(self, rays: Rays) -> RenderOutput:
         """The fused kernel (:func:`nerfbot.kernels.octree.octree_render`): segments go to
         :data:`SLOT_SEGMENTS` scratch slots per ray (rays with more are rendered again with
-        exact room), then :func:`~nerfbot.kernels.octree.pack_segments` packs them."""
+        exact room), then :func:`~nerfbot.kernels.octree.pack_segments` packs them. The
+        background is read from its baked table (:meth:`~nerfbot.models.Model.baked_background`)."""
         n = len(rays)
         field = self.field
         o = rays.origins.float().contiguous().numpy()
         d = rays.directions.float().contiguous().numpy()
-        bg = self.background(rays.directions).float().expand(n, 3).contiguous().numpy()
+        bg = self.baked_background(rays.directions)
         consts = (self.aabb.float().contiguous().numpy(), field.child.contiguous().numpy(),
                   field.leaf_data.detach().float().contiguous().numpy(),
                   field.normalize.cube_min.double().numpy(), field.cube_size,

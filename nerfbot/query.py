@@ -51,7 +51,8 @@ def render_rays_chunked(model: Model, rays: Rays, chunk: int = 1 << 14, cond=Non
     """
     thresholds = _as_thresholds(list(thresholds))
     was_training = model.training
-    model.eval()
+    if was_training:  # train() walks every submodule: skip it when already in eval mode
+        model.eval()
     parts: dict[str, list] = {k: [] for k in _IMAGE_KEYS}
     if thresholds:
         parts["threshold_depth"], parts["threshold_z_depth"] = [], []
@@ -70,11 +71,12 @@ def render_rays_chunked(model: Model, rays: Rays, chunk: int = 1 << 14, cond=Non
                 parts["threshold_depth"].append(t)
                 parts["threshold_z_depth"].append(t * sub.z_per_t[None])
     finally:
-        model.train(was_training)
+        if was_training:
+            model.train()
     out = {}
     for k, v in parts.items():
         dim = 1 if k.startswith("threshold") else 0
-        out[k] = torch.cat(v, dim) if v else torch.zeros(0)
+        out[k] = v[0] if len(v) == 1 else torch.cat(v, dim) if v else torch.zeros(0)
     return out
 
 

@@ -12,10 +12,10 @@ import torch
 from nerfbot.cli import main
 from nerfbot.data import load_dataset
 from nerfbot.evaluation import evaluate
-from nerfbot.fields.fastnerf import (FastNeRFField, FastNeRFFieldConfig, bake_cache,
-                                     direction_grid, octahedral_decode, octahedral_encode)
+from nerfbot.fields.fastnerf import FastNeRFField, FastNeRFFieldConfig, bake_cache
 from nerfbot.fields.fastnerf_cache import FastNeRFCacheModel
 from nerfbot.methods import build_model
+from nerfbot.octahedral import direction_grid, octahedral_decode, octahedral_encode
 from nerfbot.query import depth, render_image
 from nerfbot.training import TrainConfig, Trainer, load_model
 

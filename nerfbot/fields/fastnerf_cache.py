@@ -21,7 +21,8 @@ from torch import nn
 
 from nerfbot.cameras import Rays
 from nerfbot.fields.base import BoxNormalizer, Field
-from nerfbot.fields.fastnerf import combine_components, octahedral_encode
+from nerfbot.fields.fastnerf import combine_components
+from nerfbot.octahedral import octahedral_encode
 from nerfbot.kernels import fastnerf_cache as _kc
 from nerfbot.models import Model
 from nerfbot.rendering import RenderOutput, composite
@@ -270,12 +271,13 @@ class FastNeRFCacheModel(Model):
     @torch.no_grad()
     def render_fused(self, rays: Rays) -> RenderOutput:
         """The numba renderer (:func:`nerfbot.kernels.fastnerf_cache.render`) on CPU rays; the
-        background is evaluated once per batch in torch and passed in."""
+        background is read from its baked table (:meth:`~nerfbot.models.Model.baked_background`)
+        once per batch and passed in."""
         n = len(rays)
         if n == 0:
             return self.render_reference(rays)
         f = self.field
-        bg = self.background(rays.directions).float().expand(n, 3).contiguous().numpy()
+        bg = self.baked_background(rays.directions)
         o = rays.origins.float().contiguous().numpy()
         d = rays.directions.float().contiguous().numpy()
         box, *cache = self._kernel_cache()

@@ -624,6 +624,8 @@ class KiloNeRFModel(OccupancyModel):
            ``early_stop_transmittance`` get weight 0), opacity, depth, median depth.
         4. Colours of the trunk's chunks that hold a sample whose weight exceeds
            ``render_min_weight``; every such sample adds weight x colour to its ray.
+        5. The background, read from its baked table
+           (:meth:`~nerfbot.models.Model.baked_background`).
 
         Returns the same :class:`RenderOutput` as the generic path (packed samples included,
         for threshold-depth queries); results agree with it up to the termination rule.
@@ -685,7 +687,7 @@ class KiloNeRFModel(OccupancyModel):
             rgb_rows = f.head(h, dp, sub, w).float()
             _kk.accumulate_rgb(starts.numpy(), counts.numpy(), weights.numpy(), min_w,
                                pos.numpy(), chunk_map.numpy(), c, rgb_rows.numpy(), rgb.numpy())
-        rgb = rgb + (1.0 - opacity)[:, None] * self.background(rays.directions)
+        rgb = rgb + (1.0 - opacity)[:, None] * torch.from_numpy(self.baked_background(d))
         return RenderOutput(rgb=rgb, opacity=opacity, depth=depth, z_depth=depth * rays.z_per_t,
                             median_depth=median, weights=weights, num_samples=m, ray_indices=ri,
                             t_starts=ts, t_ends=te, sigmas=sigmas)

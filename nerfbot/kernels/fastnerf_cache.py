@@ -26,6 +26,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from nerfbot.kernels.octahedral import bilinear
+
 #: Rays per parallel work item of the renderer (scratch arrays are allocated once per item).
 RAY_BLOCK = 64
 #: B, cells per edge of a cache brick (a power of two: the renderer splits cell indices into
@@ -89,40 +91,6 @@ def mark_coarse(cells, lo, hi, out):
 
 
 # ----------------------------------------------------------------------------- renderer
-@njit(inline="always")
-def _octahedral(dx, dy, dz):
-    """Unit direction -> octahedral coordinates (u, v) in [-1, 1]^2 (see
-    :func:`nerfbot.fields.fastnerf.octahedral_encode`)."""
-    s = abs(dx) + abs(dy) + abs(dz)
-    s = max(s, 1e-30)
-    px, py, pz = dx / s, dy / s, dz / s
-    if pz >= 0:
-        return px, py
-    sx = 1.0 if px >= 0 else -1.0
-    sy = 1.0 if py >= 0 else -1.0
-    return (1.0 - abs(py)) * sx, (1.0 - abs(px)) * sy
-
-
-@njit(inline="always")
-def _direction_weights(dx, dy, dz, dir_weights, beta):
-    """Bilinear lookup of beta (D,) for one direction, written into ``beta``."""
-    nd = dir_weights.shape[0]
-    u, v = _octahedral(dx, dy, dz)
-    fu = (u + 1.0) * 0.5 * (nd - 1)
-    fv = (v + 1.0) * 0.5 * (nd - 1)
-    iu = min(max(int(math.floor(fu)), 0), nd - 2)
-    iv = min(max(int(math.floor(fv)), 0), nd - 2)
-    wu = fu - iu
-    wv = fv - iv
-    w00 = (1.0 - wu) * (1.0 - wv)
-    w10 = wu * (1.0 - wv)
-    w01 = (1.0 - wu) * wv
-    w11 = wu * wv
-    for i in range(beta.shape[0]):
-        beta[i] = (w00 * dir_weights[iu, iv, i] + w10 * dir_weights[iu + 1, iv, i]
-                   + w01 * dir_weights[iu, iv + 1, i] + w11 * dir_weights[iu + 1, iv + 1, i])
-
-
 @njit(inline="always")
 def _cell_exit(rx, ry, rz, ivx, ivy, ivz, cx, cy, cz, size):
     """Ray distance at which a ray leaves cell (cx, cy, cz) of edge ``size`` of a grid whose
@@ -286,7 +254,7 @@ def render(origins, dirs, aabb, occ_box, background, bricks, n_bricks, values, s
             b2 = np.float32(0.0)
             if t < tf and n_bricks > 0:
                 # colour logits are affine in the interpolated integers: fold beta and scales
-                _direction_weights(dx, dy, dz, dir_weights, beta)
+                bilinear(dir_weights, dx, dy, dz, beta)
                 for i in range(n_comp):
                     coef[3 * i] = beta[i] * scale[1 + 3 * i]
                     coef[3 * i + 1] = beta[i] * scale[2 + 3 * i]
