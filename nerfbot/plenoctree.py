@@ -346,12 +346,13 @@ class PlenOctreeModel(Model):
                          t_far, rays.z_per_t, with_median=with_median)
 
     def _scratch(self, size: int, keep: int = 0) -> tuple:
-        """Four float32 scratch arrays of at least ``size``, kept between calls (fresh memory
-        costs a page fault per 4 kB on first touch, as much as rendering a few hundred rays);
-        when they grow, their first ``keep`` entries are carried over."""
+        """Scratch arrays of at least ``size`` (four float32: segment start, end, density,
+        weight; one int32: leaf), kept between calls (fresh memory costs a page fault per 4 kB
+        on first touch, as much as rendering a few hundred rays); when they grow, their first
+        ``keep`` entries are carried over."""
         held = getattr(self, "_scratch_arrays", None)
         if held is None or held[0].shape[0] < size:
-            grown = tuple(np.empty(int(size * 1.25), np.float32) for _ in range(4))
+            grown = tuple(np.empty(int(size * 1.25), dt) for dt in (np.float32,) * 4 + (np.int32,))
             if held is not None and keep:
                 for new, old in zip(grown, held):
                     new[:keep] = old[:keep]
@@ -362,15 +363,16 @@ class PlenOctreeModel(Model):
     def _render_fused(self, rays: Rays) -> RenderOutput:
         """The fused kernel (:func:`nerfbot.kernels.octree.octree_render`): segments go to
         :data:`SLOT_SEGMENTS` scratch slots per ray (rays with more are rendered again with
-        exact room), then :func:`~nerfbot.kernels.octree.pack_segments` packs them. The
+        exact room, and take their colour from that second pass), then :func:`~nerfbot.kernels.octree.pack_segments` packs them. The
         background is read from its baked table (:meth:`~nerfbot.models.Model.baked_background`)."""
         n = len(rays)
         field = self.field
         o = rays.origins.float().contiguous().numpy()
         d = rays.directions.float().contiguous().numpy()
         bg = self.baked_background(rays.directions)
+        leaf_data = field.leaf_data.detach().float().contiguous().numpy()
         consts = (self.aabb.float().contiguous().numpy(), field.child.contiguous().numpy(),
-                  field.leaf_data.detach().float().contiguous().numpy(),
+                  leaf_data, np.ascontiguousarray(leaf_data[:, 0]),
                   field.normalize.cube_min.double().numpy(), field.cube_size,
                   float(self.config.early_stop_transmittance))
 
@@ -392,7 +394,7 @@ class PlenOctreeModel(Model):
             cap = counts[over]
             start = n * SLOT_SEGMENTS + np.cumsum(cap) - cap
             scratch = self._scratch(int(start[-1] + cap[-1]), keep=n * SLOT_SEGMENTS)
-            run(o[over], d[over], bg[over], start, cap, scratch)
+            rgb[over] = run(o[over], d[over], bg[over], start, cap, scratch)[0]
             src_start = slot_start.copy()
             src_start[over] = start
         starts = np.cumsum(counts) - counts
@@ -400,8 +402,8 @@ class PlenOctreeModel(Model):
         ray_indices = np.empty(m, np.int64)
         packed = tuple(np.empty(m, np.float32) for _ in range(4))
         median = np.empty(n, np.float32)
-        _ok.pack_segments(counts, src_start, starts, opacity, depth, far, EMPTY_OPACITY, *scratch,
-                          ray_indices, *packed, median)
+        _ok.pack_segments(counts, src_start, starts, opacity, depth, far, EMPTY_OPACITY,
+                          *scratch[:4], ray_indices, *packed, median)
         ts, te, sigmas, weights = (torch.from_numpy(a) for a in packed)
         depth_t = torch.from_numpy(depth)
         return RenderOutput(rgb=torch.from_numpy(rgb), opacity=torch.from_numpy(opacity),

@@ -13,7 +13,7 @@ from nerfbot.cli import main
 from nerfbot.data import load_dataset
 from nerfbot.evaluation import evaluate
 from nerfbot.fields.fastnerf import FastNeRFField, FastNeRFFieldConfig, bake_cache
-from nerfbot.fields.fastnerf_cache import FastNeRFCacheModel
+from nerfbot.fields.fastnerf_cache import FastNeRFCacheConfig, FastNeRFCacheModel
 from nerfbot.methods import build_model
 from nerfbot.octahedral import direction_grid, octahedral_decode, octahedral_encode
 from nerfbot.query import depth, render_image
@@ -150,11 +150,13 @@ def test_fused_renderer_matches_torch_reference(trained, baked, stop):
     _, ds = trained
     model = baked[0]
     model.config.early_stop_transmittance = stop
+    model.config.color_min_weight = 0.0
     try:
         rays = _test_rays(ds)
         fused, ref = model.render_fused(rays), model.render_reference(rays)
     finally:
         model.config.early_stop_transmittance = 1e-3
+        model.config.color_min_weight = FastNeRFCacheConfig.color_min_weight
     tol = 2e-4 if stop == 0 else 3e-3
     torch.testing.assert_close(fused.rgb, ref.rgb.float(), atol=tol, rtol=0)
     torch.testing.assert_close(fused.opacity, ref.opacity.float(), atol=tol, rtol=0)
@@ -170,6 +172,29 @@ def test_fused_renderer_matches_torch_reference(trained, baked, stop):
     torch.testing.assert_close(sums, fused.opacity, atol=1e-4, rtol=0)
     if stop == 0:
         assert fused.num_samples == int((ref.sigmas > 0).sum())
+
+
+def test_faint_samples_take_their_rays_mean_colour(trained, baked):
+    """With ``color_min_weight``, samples of at most that weight are not looked up: each pixel
+    moves by at most the weight of its skipped samples, opacity and depth do not move, and
+    fewer colour lookups are the point (most of a ray's samples are faint)."""
+    _, ds = trained
+    model = baked[0]
+    rays = _test_rays(ds)
+    min_w = FastNeRFCacheConfig.color_min_weight
+    assert min_w > 0 and model.config.color_min_weight == min_w
+    faint = model.render_fused(rays)
+    model.config.color_min_weight = 0.0
+    try:
+        exact = model.render_fused(rays)
+    finally:
+        model.config.color_min_weight = min_w
+    skipped = exact.weights * (exact.weights <= min_w)
+    bound = torch.zeros(len(rays)).index_add_(0, exact.ray_indices, skipped)
+    assert float(bound.max()) > 1e-4  # some rays do skip samples
+    assert bool(((faint.rgb - exact.rgb).abs() <= bound[:, None] + 1e-5).all())
+    for name in ("opacity", "depth", "median_depth", "weights"):
+        torch.testing.assert_close(getattr(faint, name), getattr(exact, name))
 
 
 def test_fused_renderer_handles_long_rays_and_empty_caches(trained, baked):

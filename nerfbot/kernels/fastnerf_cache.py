@@ -27,8 +27,10 @@ import numpy as np
 from numba import njit, prange
 
 from nerfbot.kernels.octahedral import bilinear
+from nerfbot.kernels.schedule import scattered
 
-#: Rays per parallel work item of the renderer (scratch arrays are allocated once per item).
+#: Rays per parallel work item of the renderer (scratch arrays are allocated once per item;
+#: blocks are visited in the scattered order of :mod:`nerfbot.kernels.schedule`).
 RAY_BLOCK = 64
 #: B, cells per edge of a cache brick (a power of two: the renderer splits cell indices into
 #: brick and offset with shifts).
@@ -150,15 +152,15 @@ def _skip(t, tm, dt, t_exit, tf, dt_min, dt_max, cone):
 
 
 @njit(inline="always")
-def _trilinear(values, row, v1, c, wx, wy, wz):
-    """Channel ``c`` of ``values`` interpolated in the brick cell whose first corner is ``row``
-    (corners at +1, +v1, +v1^2 along z, y, x), with local coordinates (wx, wy, wz)."""
+def _trilinear(density, row, v1, wx, wy, wz):
+    """``density`` (one int16 per vertex) interpolated in the brick cell whose first corner is
+    ``row`` (corners at +1, +v1, +v1^2 along z, y, x), with local coordinates (wx, wy, wz)."""
     one = np.float32(1.0)
     r1 = row + v1 * v1
-    q00 = (one - wz) * np.float32(values[row, c]) + wz * np.float32(values[row + 1, c])
-    q01 = (one - wz) * np.float32(values[row + v1, c]) + wz * np.float32(values[row + v1 + 1, c])
-    q10 = (one - wz) * np.float32(values[r1, c]) + wz * np.float32(values[r1 + 1, c])
-    q11 = (one - wz) * np.float32(values[r1 + v1, c]) + wz * np.float32(values[r1 + v1 + 1, c])
+    q00 = (one - wz) * np.float32(density[row]) + wz * np.float32(density[row + 1])
+    q01 = (one - wz) * np.float32(density[row + v1]) + wz * np.float32(density[row + v1 + 1])
+    q10 = (one - wz) * np.float32(density[r1]) + wz * np.float32(density[r1 + 1])
+    q11 = (one - wz) * np.float32(density[r1 + v1]) + wz * np.float32(density[r1 + v1 + 1])
     return (one - wx) * ((one - wy) * q00 + wy * q01) + wx * ((one - wy) * q10 + wy * q11)
 
 
@@ -179,9 +181,10 @@ def _interpolate(values, row, v1, wx, wy, wz, acc):
 
 
 @njit(parallel=True, fastmath=_FAST, cache=True)
-def render(origins, dirs, aabb, occ_box, background, bricks, n_bricks, values, scale, offset,
-           occ, occ2, dir_weights, cmin, cube_size, dt_min, dt_max, cone, stop_transmittance, block_cap,
-           rgb, opacity, depth, far, counts, src_start, s_ts, s_te, s_sigma, s_w):
+def render(origins, dirs, aabb, occ_box, background, bricks, n_bricks, values, density, scale,
+           offset, occ, occ2, dir_weights, cmin, cube_size, dt_min, dt_max, cone,
+           stop_transmittance, min_weight, block_cap, rgb, opacity, depth, far, counts, src_start, s_ts, s_te,
+           s_sigma, s_w, s_row, s_fx, s_fy, s_fz):
     """Render rays through the cache: clip to the box, march, look up, composite with early
     termination.
 
@@ -189,26 +192,35 @@ def render(origins, dirs, aabb, occ_box, background, bricks, n_bricks, values, s
     ``dt = clamp(t * cone, dt_min, dt_max)``, a sample [t, min(t + dt, t_far)] where the coarse
     cell at t + dt / 2 is occupied, evaluated at the interval's midpoint), except that empty
     cells are jumped over (those of ``occ2`` first, then those of ``occ``). A ray stops once its
-    transmittance falls below ``stop_transmittance``. Samples are looked up in rounds (see
-    :data:`ROUND_MIN`): first the densities of a whole round, whose memory accesses overlap,
-    then colours and compositing in order.
+    transmittance falls below ``stop_transmittance``. Samples of weight at most ``min_weight``
+    are composited but their colour is not read: they take the weight-averaged colour of the
+    ray's other samples (their weight is kept, so opacity and depth are exact).
+
+    Each block of :data:`RAY_BLOCK` rays is rendered in two passes. First every ray is marched
+    and composited from densities alone, read from ``density`` (one int16 per vertex, 1/25 of
+    the cache); samples are looked up in rounds (see :data:`ROUND_MIN`) whose memory accesses
+    overlap. Then the colours of all the block's samples are read from ``values``: loads that
+    do not wait for each other, so the cache misses on the big table overlap too.
 
     Args:
         origins, dirs: (R, 3) float32, unit directions; aabb: (2, 3) float64 scene bounds;
             occ_box: (2, 3) float64 box around the occupied cells (marching skips to it).
         background: (R, 3) float32 colour behind each ray.
         bricks, values, scale, offset, occ, dir_weights: the cache (module docstring), values
-            as (n_bricks * (B+1)^3, C) with B = :data:`BRICK`; n_bricks: stored bricks.
+            as (n_bricks * (B+1)^3, C) with B = :data:`BRICK`; n_bricks: stored bricks;
+            density: (n_bricks * (B+1)^3,) int16, ``values[:, 0]``.
         occ2: (G2, G2, G2) uint8, occ max-pooled over :data:`POOL`^3 blocks.
         cmin: (3,) float64 cube corner; cube_size: cube edge, metres.
         block_cap: scratch entries per block of :data:`RAY_BLOCK` rays: the rays of block b
-            write their samples one after the other into ``s_*[b * block_cap:]``; samples that
-            find the block's room full are only counted (render those rays again with more).
+            write their samples one after the other into ``s_*[b * block_cap:]``. Samples that
+            find the block's room full are only counted, and their rays get no colour: render
+            those rays again with more room.
     Outputs:
         rgb (R, 3), opacity (R,), depth (R,) expected ray distance (``far`` for empty rays),
         far (R,) box exit, counts (R,) int64 samples composited, src_start (R,) int64 where each
         ray's samples start in the scratch; s_ts, s_te, s_sigma, s_w: per-sample interval,
-        density and weight (float32).
+        density and weight (float32); s_row (int32), s_fx, s_fy, s_fz (float32): its cell's
+        first vertex row and position in the cell.
     """
     n_rays = origins.shape[0]
     n_ch = values.shape[1]
@@ -223,7 +235,8 @@ def render(origins, dirs, aabb, occ_box, background, bricks, n_bricks, values, s
     cs2 = cs * POOL
     inv_cs2 = inv_cs / POOL
     n_blocks = (n_rays + RAY_BLOCK - 1) // RAY_BLOCK
-    for blk in prange(n_blocks):
+    for item in prange(n_blocks):
+        blk = scattered(item, n_blocks)
         acc = np.empty(n_ch, np.float32)
         rows = np.empty(ROUND_MAX, np.int64)
         wts = np.empty((ROUND_MAX, 3), np.float32)
@@ -232,9 +245,13 @@ def render(origins, dirs, aabb, occ_box, background, bricks, n_bricks, values, s
         sig = np.empty(ROUND_MAX, np.float32)
         beta = np.empty(max(n_comp, 1), np.float32)
         coef = np.empty(max(3 * n_comp, 1), np.float32)
+        left = np.empty(RAY_BLOCK, np.float64)
         cursor = blk * block_cap
         room_end = cursor + block_cap
-        for r in range(blk * RAY_BLOCK, min(n_rays, (blk + 1) * RAY_BLOCK)):
+        r_first = blk * RAY_BLOCK
+        r_last = min(n_rays, (blk + 1) * RAY_BLOCK)
+        # 1. march and composite densities
+        for r in range(r_first, r_last):
             ox, oy, oz = np.float64(origins[r, 0]), np.float64(origins[r, 1]), \
                 np.float64(origins[r, 2])
             dx, dy, dz = np.float64(dirs[r, 0]), np.float64(dirs[r, 1]), np.float64(dirs[r, 2])
@@ -244,24 +261,8 @@ def render(origins, dirs, aabb, occ_box, background, bricks, n_bricks, values, s
             ivy = 1.0 / dy if dy != 0.0 else 0.0
             ivz = 1.0 / dz if dz != 0.0 else 0.0
             trans = 1.0
-            c0 = 0.0
-            c1 = 0.0
-            c2 = 0.0
             dsum = 0.0
             n = 0
-            b0 = np.float32(0.0)
-            b1 = np.float32(0.0)
-            b2 = np.float32(0.0)
-            if t < tf and n_bricks > 0:
-                # colour logits are affine in the interpolated integers: fold beta and scales
-                bilinear(dir_weights, dx, dy, dz, beta)
-                for i in range(n_comp):
-                    coef[3 * i] = beta[i] * scale[1 + 3 * i]
-                    coef[3 * i + 1] = beta[i] * scale[2 + 3 * i]
-                    coef[3 * i + 2] = beta[i] * scale[3 + 3 * i]
-                    b0 += beta[i] * offset[1 + 3 * i]
-                    b1 += beta[i] * offset[2 + 3 * i]
-                    b2 += beta[i] * offset[3 + 3 * i]
             # march only across the box of the occupied cells, on the same step lattice
             t_end = tf
             if t < tf and n_bricks > 0:
@@ -276,7 +277,7 @@ def render(origins, dirs, aabb, occ_box, background, bricks, n_bricks, values, s
             want = ROUND_MIN
             alive = n_bricks > 0
             while alive and t < t_end:
-                # 1. march to the next ``want`` samples in stored bricks
+                # march to the next ``want`` samples in stored bricks
                 m = 0
                 while m < want and t < t_end:
                     dt = min(max(t * cone, dt_min), dt_max)
@@ -323,29 +324,18 @@ def render(origins, dirs, aabb, occ_box, background, bricks, n_bricks, values, s
                     m += 1
                 if m == 0:
                     break
-                # 2. densities of all of them (independent loads: their misses overlap)
+                # densities of all of them (independent loads: their misses overlap)
                 for s in range(m):
-                    q = _trilinear(values, rows[s], v1, 0, wts[s, 0], wts[s, 1], wts[s, 2])
+                    q = _trilinear(density, rows[s], v1, wts[s, 0], wts[s, 1], wts[s, 2])
                     sig[s] = math.exp(min(q * scale[0] + offset[0], np.float32(RAW_MAX)))
-                # 3. composite up to where the ray saturates, colours only for those samples
+                # composite up to where the ray saturates
                 for s in range(m):
-                    _interpolate(values, rows[s], v1, wts[s, 0], wts[s, 1], wts[s, 2], acc)
                     sigma = sig[s]
                     ts = tss[s]
                     te = tes[s]
                     tau = min(np.float64(sigma) * max(te - ts, 0.0), 1e4)
                     e = math.exp(-tau)
                     w = trans * (1.0 - e)
-                    l0 = b0
-                    l1 = b1
-                    l2 = b2
-                    for i in range(n_comp):
-                        l0 += coef[3 * i] * acc[1 + 3 * i]
-                        l1 += coef[3 * i + 1] * acc[2 + 3 * i]
-                        l2 += coef[3 * i + 2] * acc[3 + 3 * i]
-                    c0 += w / (1.0 + math.exp(-l0))
-                    c1 += w / (1.0 + math.exp(-l1))
-                    c2 += w / (1.0 + math.exp(-l2))
                     dsum += w * 0.5 * (ts + te)
                     k = cursor + n
                     if k < room_end:
@@ -353,6 +343,10 @@ def render(origins, dirs, aabb, occ_box, background, bricks, n_bricks, values, s
                         s_te[k] = te
                         s_sigma[k] = sigma
                         s_w[k] = w
+                        s_row[k] = rows[s]
+                        s_fx[k] = wts[s, 0]
+                        s_fy[k] = wts[s, 1]
+                        s_fz[k] = wts[s, 2]
                     n += 1
                     trans *= e
                     if trans < stop_transmittance:
@@ -361,14 +355,62 @@ def render(origins, dirs, aabb, occ_box, background, bricks, n_bricks, values, s
                 want = min(2 * want, ROUND_MAX)
             op = 1.0 - trans
             opacity[r] = op
-            rgb[r, 0] = c0 + trans * background[r, 0]
-            rgb[r, 1] = c1 + trans * background[r, 1]
-            rgb[r, 2] = c2 + trans * background[r, 2]
             depth[r] = dsum / op if op > 1e-6 else tf
             far[r] = tf
             counts[r] = n
             src_start[r] = cursor
             cursor += n
+            left[r - r_first] = trans
+        # 2. colours of the block's samples; rays whose samples did not all fit are skipped
+        for q in range(r_first, r_last):
+            first = src_start[q]
+            last = first + counts[q]
+            if last > room_end:
+                continue
+            c0 = 0.0
+            c1 = 0.0
+            c2 = 0.0
+            if last > first:
+                # colour logits are affine in the interpolated integers: fold beta and scales
+                bilinear(dir_weights, np.float64(dirs[q, 0]), np.float64(dirs[q, 1]),
+                         np.float64(dirs[q, 2]), beta)
+                b0 = np.float32(0.0)
+                b1 = np.float32(0.0)
+                b2 = np.float32(0.0)
+                for i in range(n_comp):
+                    coef[3 * i] = beta[i] * scale[1 + 3 * i]
+                    coef[3 * i + 1] = beta[i] * scale[2 + 3 * i]
+                    coef[3 * i + 2] = beta[i] * scale[3 + 3 * i]
+                    b0 += beta[i] * offset[1 + 3 * i]
+                    b1 += beta[i] * offset[2 + 3 * i]
+                    b2 += beta[i] * offset[3 + 3 * i]
+                w_all = 0.0
+                w_read = 0.0
+                for j in range(first, last):
+                    wj = np.float64(s_w[j])
+                    w_all += wj
+                    if wj <= min_weight:
+                        continue
+                    w_read += wj
+                    _interpolate(values, s_row[j], v1, s_fx[j], s_fy[j], s_fz[j], acc)
+                    l0 = b0
+                    l1 = b1
+                    l2 = b2
+                    for i in range(n_comp):
+                        l0 += coef[3 * i] * acc[1 + 3 * i]
+                        l1 += coef[3 * i + 1] * acc[2 + 3 * i]
+                        l2 += coef[3 * i + 2] * acc[3 + 3 * i]
+                    c0 += wj / (1.0 + math.exp(-l0))
+                    c1 += wj / (1.0 + math.exp(-l1))
+                    c2 += wj / (1.0 + math.exp(-l2))
+                if w_read > 0.0:  # the faint samples take the colour of the others
+                    c0 *= w_all / w_read
+                    c1 *= w_all / w_read
+                    c2 *= w_all / w_read
+            rest = left[q - r_first]
+            rgb[q, 0] = c0 + rest * background[q, 0]
+            rgb[q, 1] = c1 + rest * background[q, 1]
+            rgb[q, 2] = c2 + rest * background[q, 2]
 
 
 def occupied_box(occ: np.ndarray, cmin: np.ndarray, cube_size: float) -> np.ndarray:

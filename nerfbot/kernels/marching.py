@@ -12,6 +12,12 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from nerfbot.kernels.schedule import block_range
+
+#: Rays per work item of the parallel loop, visited in the scattered order of
+#: :mod:`nerfbot.kernels.schedule`.
+_BLOCK = 64
+
 
 @njit(inline="always")
 def _occupied(px, py, pz, occ, gmin, inv_cell, g):
@@ -34,26 +40,29 @@ def _march(origins, dirs, t_begin, t_far, occ, gmin, cell, dt_min, dt_max, cone,
     """Both passes of the marcher: counts (``fill`` False) or writes (``fill`` True) samples."""
     g = occ.shape[0]
     inv_cell = 1.0 / cell
-    for r in prange(origins.shape[0]):
-        t = np.float64(t_begin[r])
-        tf = np.float64(t_far[r])
-        n = 0
-        k = starts[r] if fill else 0
-        while t < tf and n < max_per_ray:
-            dt = _step(t, dt_min, dt_max, cone)
-            tm = t + 0.5 * dt
-            if _occupied(origins[r, 0] + tm * dirs[r, 0], origins[r, 1] + tm * dirs[r, 1],
-                         origins[r, 2] + tm * dirs[r, 2], occ, gmin, inv_cell, g):
-                if fill:
-                    ray_indices[k] = r
-                    t_starts[k] = t
-                    t_ends[k] = min(t + dt, tf)
-                    k += 1
-                n += 1
-            t += dt
-        if not fill:
-            counts[r] = n
-            t_stop[r] = t
+    n_rays = origins.shape[0]
+    for item in prange((n_rays + _BLOCK - 1) // _BLOCK):
+        r0, r1 = block_range(item, n_rays, _BLOCK)
+        for r in range(r0, r1):
+            t = np.float64(t_begin[r])
+            tf = np.float64(t_far[r])
+            n = 0
+            k = starts[r] if fill else 0
+            while t < tf and n < max_per_ray:
+                dt = _step(t, dt_min, dt_max, cone)
+                tm = t + 0.5 * dt
+                if _occupied(origins[r, 0] + tm * dirs[r, 0], origins[r, 1] + tm * dirs[r, 1],
+                             origins[r, 2] + tm * dirs[r, 2], occ, gmin, inv_cell, g):
+                    if fill:
+                        ray_indices[k] = r
+                        t_starts[k] = t
+                        t_ends[k] = min(t + dt, tf)
+                        k += 1
+                    n += 1
+                t += dt
+            if not fill:
+                counts[r] = n
+                t_stop[r] = t
 
 
 _NO_I64 = np.empty(0, np.int64)

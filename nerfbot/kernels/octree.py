@@ -27,30 +27,20 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from nerfbot.kernels.schedule import block_range
 from nerfbot.kernels.sh import sh_basis
 
 EMPTY = -1
 #: Floating-point liberties of the fused renderer: reassociation and contraction (so the SH
 #: dot products vectorise) but no "finite math only": the walker relies on inf.
 _SHADE_MATH = {"nsz", "arcp", "contract", "reassoc", "afn"}
-#: Rays per work item of the parallel loops (a block shares its scratch arrays).
+#: Rays per work item of the parallel loops (a block shares its scratch arrays; blocks are
+#: visited in the scattered order of :mod:`nerfbot.kernels.schedule`).
 _BLOCK = 32
 #: Entries of the ancestor stack of a walk: deeper than any tree (MAX_DEPTH in plenoctree.py).
 _STACK = 32
-#: Stride of the block permutation (a prime): see :func:`_block_rays`.
-_SPREAD = 7919
 #: Step past a cell boundary, relative to the cube edge, when locating the next cell.
 _EPS_REL = 1e-7
-
-
-@njit(inline="always")
-def _block_rays(i, n_rays):
-    """Ray range (start, stop) of work item ``i``. Items visit blocks of :data:`_BLOCK` rays in
-    a scattered order: the parallel loop hands each thread a contiguous range of items, and
-    image rows that see the scene (many leaves per ray) would otherwise all go to one thread."""
-    nb = (n_rays + _BLOCK - 1) // _BLOCK
-    b = (i * _SPREAD) % nb if nb % _SPREAD else i
-    return b * _BLOCK, min(n_rays, (b + 1) * _BLOCK)
 
 
 @njit(inline="always")
@@ -226,7 +216,7 @@ def _walk(origins, dirs, t_near, t_far, child, sigma, gmin, gsize, stop, fill, s
     for b in prange((n_rays + _BLOCK - 1) // _BLOCK):
         nodes = np.empty(_STACK, np.int64)
         corners = np.empty((_STACK, 3), np.float64)
-        r0, r1 = _block_rays(b, n_rays)
+        r0, r1 = block_range(b, n_rays, _BLOCK)
         for r in range(r0, r1):
             o0, o1, o2 = np.float64(origins[r, 0]), np.float64(origins[r, 1]), np.float64(origins[r, 2])
             d0, d1, d2 = np.float64(dirs[r, 0]), np.float64(dirs[r, 1]), np.float64(dirs[r, 2])
@@ -283,24 +273,33 @@ def walk_fill(origins, dirs, t_near, t_far, child, sigma, gmin, gsize, stop, sta
 
 
 @njit(parallel=True, fastmath=_SHADE_MATH, cache=True, nogil=True)
-def octree_render(origins, dirs, box, child, leaf_data, gmin, gsize, stop, background,
+def octree_render(origins, dirs, box, child, leaf_data, leaf_sigma, gmin, gsize, stop, background,
                   slot_start, slot_cap, rgb, opacity, depth, far, counts, s_ts, s_te, s_sigma,
-                  s_w):
-    """Fused renderer: walk, shade (SH colour per leaf), composite with early termination.
+                  s_w, s_leaf):
+    """Fused renderer: walk, composite with early termination, shade (SH colour per leaf).
+
+    Each block of :data:`_BLOCK` rays is rendered in two passes: first every ray is walked and
+    composited from the leaves' densities alone (``leaf_sigma``, small enough to stay in cache),
+    its segments written to the scratch arrays; then the colours of all the block's segments
+    are read. The leaves' coefficients are the big table: read in one pass whose loads do not
+    wait for each other, their cache misses overlap instead of stalling the walk one by one.
 
     Args:
         origins, dirs, child, gmin, gsize, stop: as in :func:`walk_count`.
         box: (2, 3) float32 scene bounds: rays are walked where they are inside (t_near and
             t_far as :func:`nerfbot.sampling.ray_aabb` computes them).
-        leaf_data: (leaves, 1 + 3 n_sh) float32 (see the module docstring).
+        leaf_data: (leaves, 1 + 3 n_sh) float32 (see the module docstring); leaf_sigma: (leaves,)
+            float32, its first column.
         background: (R, 3) float32 colour behind each ray.
         slot_start, slot_cap: (R,) int64 where ray r may write its segments in the scratch
-            arrays and how many fit; a ray with more (``counts[r] > slot_cap[r]``) writes the
-            first ``slot_cap[r]`` only, and the caller renders it again with more room.
+            arrays and how many fit. A ray with more (``counts[r] > slot_cap[r]``) writes the
+            first ``slot_cap[r]`` only and gets no colour: the caller renders it again with
+            more room.
         rgb: (R, 3), opacity, depth (expected ray distance; 0 where opacity is 0), far
             (t_far): (R,) float32 outputs;
         counts: (R,) int64 output, leaf segments composited per ray.
-        s_ts, s_te, s_sigma, s_w: float32 scratch: each segment's start, end, density, weight.
+        s_ts, s_te, s_sigma, s_w: float32 scratch: each segment's start, end, density, weight;
+            s_leaf: int32 scratch, its leaf.
 
     Weights follow :mod:`nerfbot.rendering`: w_i = T_i (1 - exp(-tau_i)), tau_i = sigma_i dt_i,
     in float64.
@@ -313,16 +312,17 @@ def octree_render(origins, dirs, box, child, leaf_data, gmin, gsize, stop, backg
         basis = np.empty(25, np.float32)
         nodes = np.empty(_STACK, np.int64)
         corners = np.empty((_STACK, 3), np.float64)
-        r0, r1 = _block_rays(b, n_rays)
+        left = np.empty(_BLOCK, np.float64)
+        r0, r1 = block_range(b, n_rays, _BLOCK)
+        # 1. walk and composite densities
         for r in range(r0, r1):
             o0, o1, o2 = np.float64(origins[r, 0]), np.float64(origins[r, 1]), np.float64(origins[r, 2])
             d0, d1, d2 = np.float64(dirs[r, 0]), np.float64(dirs[r, 1]), np.float64(dirs[r, 2])
             i0, i1, i2 = _inverse(d0), _inverse(d1), _inverse(d2)
-            sh_basis(d0, d1, d2, degree, basis)
             t, tf = _ray_box(origins, dirs, r, box)
             level = _reset_stack(nodes, corners, gmin)
             trans = 1.0
-            cr, cg, cb, dsum = 0.0, 0.0, 0.0, 0.0
+            dsum = 0.0
             n = 0
             k, cap = slot_start[r], slot_cap[r]
             while t < tf and trans >= stop:
@@ -330,35 +330,49 @@ def octree_render(origins, dirs, box, child, leaf_data, gmin, gsize, stop, backg
                                           eps, nodes, corners, level)
                 if v <= -2:
                     leaf = -2 - v
-                    sigma = max(np.float64(leaf_data[leaf, 0]), 0.0)
-                    after = trans * math.exp(-sigma * (te - t))
+                    sig = max(np.float64(leaf_sigma[leaf]), 0.0)
+                    after = trans * math.exp(-sig * (te - t))
                     w = trans - after
-                    if w > 0.0:  # colour in float32, as the torch path computes it
-                        kr, kg, kb = np.float32(0.0), np.float32(0.0), np.float32(0.0)
-                        for j in range(n_sh):
-                            kr += leaf_data[leaf, 1 + j] * basis[j]
-                            kg += leaf_data[leaf, 1 + n_sh + j] * basis[j]
-                            kb += leaf_data[leaf, 1 + 2 * n_sh + j] * basis[j]
-                        cr += w * _sigmoid32(kr)
-                        cg += w * _sigmoid32(kg)
-                        cb += w * _sigmoid32(kb)
-                        dsum += w * 0.5 * (t + te)
+                    dsum += w * 0.5 * (t + te)
                     if n < cap:
                         s_ts[k + n] = t
                         s_te[k + n] = te
-                        s_sigma[k + n] = sigma
+                        s_sigma[k + n] = sig
                         s_w[k + n] = w
+                        s_leaf[k + n] = leaf
                     trans = after
                     n += 1
                 t = te
             op = 1.0 - trans
             counts[r] = n
             far[r] = tf
-            rgb[r, 0] = cr + trans * background[r, 0]
-            rgb[r, 1] = cg + trans * background[r, 1]
-            rgb[r, 2] = cb + trans * background[r, 2]
             opacity[r] = op
             depth[r] = dsum / op if op > 0.0 else 0.0
+            left[r - r0] = trans
+        # 2. colours: the block's segments, in float32 as the torch path computes them
+        for q in range(r0, r1):
+            first, last = slot_start[q], slot_start[q] + counts[q]
+            if counts[q] > slot_cap[q]:
+                continue
+            sh_basis(np.float64(dirs[q, 0]), np.float64(dirs[q, 1]), np.float64(dirs[q, 2]),
+                     degree, basis)
+            cr, cg, cb = 0.0, 0.0, 0.0
+            for j in range(first, last):
+                wj = np.float64(s_w[j])
+                if wj > 0.0:
+                    lj = s_leaf[j]
+                    kr, kg, kb = np.float32(0.0), np.float32(0.0), np.float32(0.0)
+                    for i in range(n_sh):
+                        kr += leaf_data[lj, 1 + i] * basis[i]
+                        kg += leaf_data[lj, 1 + n_sh + i] * basis[i]
+                        kb += leaf_data[lj, 1 + 2 * n_sh + i] * basis[i]
+                    cr += wj * _sigmoid32(kr)
+                    cg += wj * _sigmoid32(kg)
+                    cb += wj * _sigmoid32(kb)
+            rest = left[q - r0]
+            rgb[q, 0] = cr + rest * background[q, 0]
+            rgb[q, 1] = cg + rest * background[q, 1]
+            rgb[q, 2] = cb + rest * background[q, 2]
 
 
 @njit(parallel=True, fastmath=False, cache=True, nogil=True)
