@@ -9,7 +9,14 @@ import numpy as np
 import torch
 from torch import nn
 
+from nerfbot.kernels import boxes as _bk
 from nerfbot.kernels import marching as _mk
+
+
+def _kernel_ready(*tensors: torch.Tensor) -> bool:
+    """The numba kernels take float32 CPU tensors that need no gradient."""
+    return all(t.device.type == "cpu" and t.dtype == torch.float32 and not t.requires_grad
+               for t in tensors)
 
 
 def ray_aabb(origins: torch.Tensor, directions: torch.Tensor, aabb: torch.Tensor,
@@ -22,7 +29,24 @@ def ray_aabb(origins: torch.Tensor, directions: torch.Tensor, aabb: torch.Tensor
     Returns:
         t_near, t_far (R,) and hit (R,) bool. Rays that miss get t_near = t_far = near.
         The box is closed: a ray lying in one of its faces hits it.
+        Float32 CPU tensors without gradients go through the numba twin
+        (:func:`nerfbot.kernels.boxes.ray_aabb`), which gives the same bits.
     """
+    if (_kernel_ready(origins, directions, aabb) and origins.dim() == 2
+            and origins.shape == directions.shape and origins.shape[-1] == 3):
+        n = origins.shape[0]
+        t_near, t_far = torch.empty(n), torch.empty(n)
+        hit = torch.empty(n, dtype=torch.bool)
+        _bk.ray_aabb(origins.contiguous().numpy(), directions.contiguous().numpy(),
+                     aabb.contiguous().numpy(), np.float32(near), t_near.numpy(), t_far.numpy(),
+                     hit.numpy())
+        return t_near, t_far, hit
+    return ray_aabb_reference(origins, directions, aabb, near)
+
+
+def ray_aabb_reference(origins: torch.Tensor, directions: torch.Tensor, aabb: torch.Tensor,
+                       near: float = 0.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Plain-torch :func:`ray_aabb` (any device, dtype and batch shape, differentiable)."""
     # A direction component below 1e-12 (parallel to a slab) bounds nothing when the origin is
     # within that slab, faces included, and excludes the ray otherwise. (Dividing by a stand-in
     # of +1e-12 instead made rays lying in a max face miss while those in a min face hit.)

@@ -27,6 +27,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from nerfbot.kernels.boxes import ray_box
 from nerfbot.kernels.schedule import block_range
 from nerfbot.kernels.sh import sh_basis
 
@@ -149,35 +150,6 @@ def _reset_stack(nodes, corners, gmin):
     nodes[0] = 0
     corners[0, 0], corners[0, 1], corners[0, 2] = gmin[0], gmin[1], gmin[2]
     return 0
-
-
-@njit(inline="always")
-def _slab(o, d, lo, hi, t0, t1):
-    """Narrow [t0, t1] to where the ray is between planes lo and hi of one axis, in float32
-    operation by operation as :func:`nerfbot.sampling.ray_aabb` (so both paths start and end
-    rays at the same distances); a direction component below 1e-12 is parallel: everything or
-    nothing."""
-    if abs(d) < 1e-12:
-        if lo <= o <= hi:
-            return t0, t1
-        return np.float32(np.inf), np.float32(-np.inf)
-    inv = np.float32(1.0) / d
-    a = (lo - o) * inv
-    b = (hi - o) * inv
-    return max(t0, min(a, b)), min(t1, max(a, b))
-
-
-@njit(inline="always")
-def _ray_box(origins, dirs, r, box):
-    """(t_near, t_far) of ray r in the box (2, 3) float32, both 0 when it misses (ray_aabb's
-    rule with near = 0)."""
-    t0, t1 = np.float32(-np.inf), np.float32(np.inf)
-    for a in range(3):
-        t0, t1 = _slab(origins[r, a], dirs[r, a], box[0, a], box[1, a], t0, t1)
-    t0 = max(t0, np.float32(0.0))
-    if not t1 > t0:
-        return 0.0, 0.0
-    return np.float64(t0), np.float64(t1)
 
 
 @njit(inline="always")
@@ -319,7 +291,7 @@ def octree_render(origins, dirs, box, child, leaf_data, leaf_sigma, gmin, gsize,
             o0, o1, o2 = np.float64(origins[r, 0]), np.float64(origins[r, 1]), np.float64(origins[r, 2])
             d0, d1, d2 = np.float64(dirs[r, 0]), np.float64(dirs[r, 1]), np.float64(dirs[r, 2])
             i0, i1, i2 = _inverse(d0), _inverse(d1), _inverse(d2)
-            t, tf = _ray_box(origins, dirs, r, box)
+            t, tf = ray_box(origins, dirs, r, box)
             level = _reset_stack(nodes, corners, gmin)
             trans = 1.0
             dsum = 0.0
