@@ -212,7 +212,7 @@ def test_fused_renderer_handles_long_rays_and_empty_caches(trained, baked):
         small = model.render_fused(rays)
     finally:
         fc.SLOT_SAMPLES = default
-        model._scratch = None
+        model._scratch.arrays = None
     assert int(torch.bincount(full.ray_indices).max()) > 2
     for name in ("rgb", "opacity", "depth", "median_depth", "ray_indices", "t_starts", "sigmas",
                  "weights"):

@@ -25,6 +25,7 @@ from nerfbot.fields.fastnerf import combine_components
 from nerfbot.octahedral import octahedral_encode
 from nerfbot.kernels import fastnerf_cache as _kc
 from nerfbot.models import Model
+from nerfbot.block_render import ScratchArrays, render_blocks
 from nerfbot.rendering import RenderOutput, composite
 from nerfbot.sampling import march_reference, ray_aabb
 
@@ -198,7 +199,7 @@ class FastNeRFCacheModel(Model):
         self.register_buffer("aabb", torch.as_tensor(aabb, dtype=torch.float32).clone())
         self.dt_min = float(self.field.normalize.cube_size) * math.sqrt(3.0) / cfg.render_steps
         self.dt_max = 8.0 * self.dt_min if cfg.cone_angle > 0 else self.dt_min
-        self._scratch: Optional[tuple[np.ndarray, ...]] = None
+        self._scratch = ScratchArrays(_SCRATCH_KINDS)
 
     # -- not trainable -------------------------------------------------------------------------
     def _no_training(self):
@@ -248,14 +249,6 @@ class FastNeRFCacheModel(Model):
         rgb = f.color(u, d)
         return composite(sigma, rgb, s.t_starts, s.t_ends, s.ray_indices, n, bg, t_far,
                          rays.z_per_t)
-
-    def _scratch_arrays(self, size: int) -> tuple[np.ndarray, ...]:
-        """Per-sample scratch (float32 t_start, t_end, sigma, weight; int32 vertex row;
-        float32 position in the cell x, y, z), reused across calls so the pages are not
-        faulted in again for every image."""
-        if self._scratch is None or self._scratch[0].shape[0] < size:
-            self._scratch = tuple(np.empty(size, k) for k in _SCRATCH_KINDS)
-        return self._scratch
 
     def _kernel_cache(self) -> tuple:
         """The cache as the kernel's arrays, after the box around the occupied cells and the
@@ -307,39 +300,7 @@ class FastNeRFCacheModel(Model):
                        *scratch)
             return out
 
-        block = _kc.RAY_BLOCK
-        n_blocks = -(-n // block)
-        block_cap = block * SLOT_SAMPLES
-        scratch = self._scratch_arrays(n_blocks * block_cap)
-        rgb, opacity, depth, far, counts, src_start = run(None, block_cap, scratch)
-        # blocks whose rays outran their room: render just their rays again, with exact room
-        totals = np.add.reduceat(counts, np.arange(0, n, block))
-        full = np.flatnonzero(totals > block_cap)
-        if full.size:
-            sel = np.concatenate([np.arange(b * block, min(n, (b + 1) * block)) for b in full])
-            room = int(np.add.reduceat(counts[sel], np.arange(0, sel.size, block)).max())
-            extra = tuple(np.empty(-(-sel.size // block) * room, k) for k in _SCRATCH_KINDS)
-            again = run(sel, room, extra)
-            rgb[sel] = again[0]  # the first pass gave these rays no colour
-            extra_start = again[-1]
-            base = scratch[0].shape[0]
-            scratch = tuple(np.concatenate([a, b]) for a, b in zip(scratch, extra))
-            src_start = src_start.copy()
-            src_start[sel] = base + extra_start
-        starts = np.cumsum(counts) - counts
-        m = int(counts.sum())
-        ray_indices = np.empty(m, np.int64)
-        packed = tuple(np.empty(m, np.float32) for _ in range(4))
-        median = np.empty(n, np.float32)
-        _kc.pack(counts, src_start, starts, opacity, far, *scratch[:4], ray_indices, *packed,
-                 median)
-        ts, te, sigma, weights = (torch.from_numpy(a) for a in packed)
-        depth_t = torch.from_numpy(depth)
-        return RenderOutput(rgb=torch.from_numpy(rgb), opacity=torch.from_numpy(opacity),
-                            depth=depth_t, z_depth=depth_t * rays.z_per_t,
-                            median_depth=torch.from_numpy(median), weights=weights,
-                            num_samples=m, ray_indices=torch.from_numpy(ray_indices),
-                            t_starts=ts, t_ends=te, sigmas=sigma)
+        return render_blocks(run, n, _kc.RAY_BLOCK, SLOT_SAMPLES, self._scratch, rays.z_per_t)
 
 
 def build_cache_model(spec: dict) -> FastNeRFCacheModel:

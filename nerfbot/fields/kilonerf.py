@@ -25,10 +25,13 @@ from torch import nn
 from nerfbot.encodings import FrequencyEncoding
 from nerfbot.fields.base import BoxNormalizer, Field, trunc_exp
 from nerfbot.kernels import kilonerf as _kk
+from nerfbot.block_render import ScratchArrays, render_blocks
 from nerfbot.models import OccupancyModel, OccupancyModelConfig
 from nerfbot.rendering import RenderOutput, ray_starts
 from nerfbot.sampling import OccupancyGrid, ray_aabb
 
+#: Scratch room per ray of the fused renderer's first pass (rays average two samples here).
+FUSED_SLOT_SAMPLES = 8
 #: The stacked per-network tensors, each with the network axis first.
 PARAMETER_NAMES = ("w_in", "b_in", "w_hid", "b_hid", "w_sigma", "b_sigma", "w_color", "b_color",
                    "w_rgb", "b_rgb")
@@ -354,13 +357,17 @@ class KiloNeRFConfig:
     distill_rays: int = 4096
     """Training rays drawn per distillation step; their directions are the view directions of
     the distillation points (directions the cameras see, not the whole sphere)."""
-    render_min_weight: float = 1e-4
+    render_min_weight: float = 1e-2
     """When rendering (eval mode), samples whose weight is at most this get no colour
-    evaluation (their colour would change a pixel by less than this); 0 evaluates all."""
+    evaluation: they take the weight-averaged colour of their ray's other samples (their weight
+    is kept, so opacity and depth are exact); 0 evaluates all. On the tabletop 1e-2 renders
+    14% faster than 1e-4 for -0.05 dB (BENCHMARKS.md, issue 6)."""
     render_precision: str = "auto"
-    """Matmuls of the one-pass renderer: "fp32", "bf16" (float32 accumulation, bfloat16 inputs
-    and outputs: 1.3x faster with AMX, colours change by ~1e-3), or "auto" (bf16 when the CPU
-    has AMX-BF16, else fp32). Training always runs in float32."""
+    """Precision of the one-pass renderer: "fp32" (the fused numba kernel,
+    :meth:`KiloNeRFModel.render_fused`), "bf16" (batched matmuls with float32 accumulation,
+    bfloat16 inputs and outputs: colours change by ~1e-3, worth it on CPUs that multiply
+    bfloat16 in hardware), or "auto" (bf16 when the CPU has AMX-BF16, else fp32). Training
+    always runs in float32."""
     fused_render: bool = True
     """Render (eval mode, CPU) in one marching pass with the numba kernels (see
     :meth:`KiloNeRFModel.render_fast`); False: the generic rounds of :class:`OccupancyModel`."""
@@ -456,6 +463,7 @@ class KiloNeRFModel(OccupancyModel):
             raise ValueError(f"distill_batch and distill_rays must be >= 1, got "
                              f"{dc.distill_batch}, {dc.distill_rays}")
         self.register_buffer("teacher_initialized", torch.zeros((), dtype=torch.uint8))
+        self._scratch = ScratchArrays((np.float32,) * 4)
         self._teacher = _Holder()
         self._distilling = False
         self._restart_batch_size = False
@@ -615,6 +623,54 @@ class KiloNeRFModel(OccupancyModel):
 
     @torch.no_grad()
     def render_fast(self, rays) -> RenderOutput:
+        """Eval-mode rendering in one marching pass on the CPU: in float32 the fused kernel
+        (:meth:`render_fused`), in bfloat16 the batched matmuls (:meth:`render_batched`, which
+        AMX runs in hardware)."""
+        if self.render_dtype() == torch.float32 and len(rays) > 0:
+            return self.render_fused(rays)
+        return self.render_batched(rays)
+
+    @torch.no_grad()
+    def render_fused(self, rays) -> RenderOutput:
+        """Every ray in one numba pass (:func:`nerfbot.kernels.kilonerf.render_fused`):
+        marching, each sample's tiny network evaluated in place (its weights stay in cache for
+        the neighbouring samples and rays that use the same network), compositing with early
+        termination, the colour head only where a sample's weight exceeds
+        ``render_min_weight``; the background from its baked table. The same
+        :class:`RenderOutput` as the generic path, up to the termination rule (samples behind
+        it are not marched) and float32 rounding."""
+        n, f = len(rays), self.field
+        t_near, t_far, _ = ray_aabb(rays.origins, rays.directions, self.aabb)
+        o = rays.origins.float().contiguous().numpy()
+        d = rays.directions.float().contiguous().numpy()
+        tn, tf = t_near.numpy(), t_far.numpy()
+        bg = self.baked_background(rays.directions)
+        grid, nz = self.grid, f.normalize
+        w = f.weights()
+        consts = (grid.occupied.numpy(), grid.cube_min.double().numpy(), float(grid.cell_size),
+                  self.dt_min, self.dt_max, float(self.config.cone_angle),
+                  nz.aabb.float().contiguous().numpy(), nz.cube_min.float().numpy(),
+                  np.float32(nz.cube_size), f.net_index.numpy(),
+                  *(w[k].detach().contiguous().numpy() for k in PARAMETER_NAMES),
+                  f.pos_enc.n_freqs, f.dir_enc.n_freqs, float(f.density_bias),
+                  float(self.config.early_stop_transmittance),
+                  float(self.kilo_config.render_min_weight))
+
+        def run(sel, block_cap, scratch):
+            m = n if sel is None else len(sel)
+            pick = (lambda a: a) if sel is None else (lambda a: np.ascontiguousarray(a[sel]))
+            out = (np.empty((m, 3), np.float32), np.empty(m, np.float32),
+                   np.empty(m, np.float32), np.empty(m, np.int64), np.empty(m, np.int64))
+            _kk.render_fused(pick(o), pick(d), pick(tn), pick(tf), *consts, pick(bg), block_cap,
+                             *out, *scratch)
+            rgb, opacity, depth, counts, src_start = out
+            return rgb, opacity, depth, pick(tf), counts, src_start
+
+        return render_blocks(run, n, _kk.RAY_BLOCK, FUSED_SLOT_SAMPLES, self._scratch,
+                             rays.z_per_t)
+
+    @torch.no_grad()
+    def render_batched(self, rays) -> RenderOutput:
         """Eval-mode rendering in one marching pass (CPU, numba kernels + batched matmuls).
 
         1. March every ray through the occupancy grid (all occupied samples at once: the

@@ -19,6 +19,8 @@ import numpy as np
 from numba import njit, prange, types
 from numba.extending import overload
 
+from nerfbot.kernels.schedule import scattered
+
 
 @njit(inline="always")
 def _bf16_bits(x):
@@ -250,7 +252,8 @@ def padded_rows(src, src_index, row_sample, out):
 @njit(parallel=True, cache=True, nogil=True)
 def accumulate_rgb(starts, counts, weights, min_weight, pos, chunk_map, chunk, rgb_rows, out):
     """out[r] = sum of w_i rgb_i over the samples of ray r whose weight exceeds ``min_weight``
-    (per ray, in sample order: deterministic).
+    (per ray, in sample order: deterministic), scaled by (all the ray's weight) / (theirs): the
+    fainter samples take the weight-averaged colour of these.
 
     The colour of sample i is row ``chunk_map[pos[i] // C] * C + pos[i] % C`` of ``rgb_rows``:
     colours are evaluated on a selection of the trunk's chunks, ``chunk_map`` (n_chunks,)
@@ -265,13 +268,228 @@ def accumulate_rgb(starts, counts, weights, min_weight, pos, chunk_map, chunk, r
         acc0 = 0.0
         acc1 = 0.0
         acc2 = 0.0
+        w_all = 0.0
+        w_read = 0.0
         for i in range(starts[r], starts[r] + counts[r]):
             w = weights[i]
+            w_all += w
             if w > min_weight and pos[i] >= 0:
                 row = chunk_map[pos[i] // chunk] * chunk + pos[i] % chunk
                 acc0 += w * rgb_rows[row, 0]
                 acc1 += w * rgb_rows[row, 1]
                 acc2 += w * rgb_rows[row, 2]
-        out[r, 0] = acc0
-        out[r, 1] = acc1
-        out[r, 2] = acc2
+                w_read += w
+        scale = w_all / w_read if w_read > 0.0 else 1.0
+        out[r, 0] = acc0 * scale
+        out[r, 1] = acc1 * scale
+        out[r, 2] = acc2 * scale
+
+
+# ----------------------------------------------------------------------------- fused renderer
+#: Rays per work item of :func:`render_fused` (visited in the scattered order of
+#: :mod:`nerfbot.kernels.schedule`; a block's rays share a scratch region).
+RAY_BLOCK = 64
+
+
+@njit(inline="always")
+def _sigmoid32(v):
+    """float32 logistic function (exp(-v) overflowing to inf gives 0, as it should)."""
+    one = np.float32(1.0)
+    return one / (one + np.exp(-np.float32(v)))
+
+
+@njit(inline="always")
+def _dense(x, n_in, w, b, k, row0, out):
+    """out = b[k] + x[:n_in] @ w[k, row0:row0 + n_in] (the first ``n_in`` inputs; ``out``'s
+    length is the layer's width). Loops over the outputs innermost: they are contiguous in
+    ``w``, so the compiler turns them into vector FMAs."""
+    for j in range(out.shape[0]):
+        out[j] = b[k, j]
+    for i in range(n_in):
+        xi = x[i]
+        for j in range(out.shape[0]):
+            out[j] += xi * w[k, row0 + i, j]
+
+
+@njit(inline="always")
+def _frequency_encode(x0, x1, x2, n_freqs, out):
+    """NeRF's encoding of a float32 3-vector into ``out`` (3 (1 + 2 F),), in the layout of
+    :class:`nerfbot.encodings.FrequencyEncoding`: [x, sin(2^k pi x) (k-major), cos(2^k pi x)];
+    as the batched renderer computes it: sin and cos of the float32 angle pi x, the octaves by
+    the double-angle recurrence in float64 (:func:`encode_padded`)."""
+    pi32 = np.float32(np.pi)
+    for a in range(3):
+        v = x0 if a == 0 else (x1 if a == 1 else x2)
+        out[a] = v
+        s = np.float64(np.sin(pi32 * v))
+        c = np.float64(np.cos(pi32 * v))
+        for k in range(n_freqs):
+            out[3 + 3 * k + a] = s
+            out[3 + 3 * (n_freqs + k) + a] = c
+            s, c = 2.0 * s * c, c * c - s * s
+
+
+@njit(parallel=True, fastmath={"nsz", "arcp", "contract", "reassoc", "afn"}, cache=True,
+      nogil=True)
+def render_fused(origins, dirs, t_near, t_far, occ, gmin, cell, dt_min, dt_max, cone, aabb,
+                 cube_min, cube_size, net_index, w_in, b_in, w_hid, b_hid, w_sigma, b_sigma,
+                 w_color, b_color, w_rgb, b_rgb, pos_freqs, dir_freqs, density_bias, early_stop,
+                 min_weight, background, block_cap, rgb, opacity, depth, counts, src_start,
+                 s_ts, s_te, s_sigma, s_w):
+    """KiloNeRF's renderer in one pass per ray: march the occupancy grid, evaluate each
+    sample's tiny network in place, composite with early termination, and evaluate the colour
+    head only for samples whose weight exceeds ``min_weight``.
+
+    Marching is :func:`nerfbot.kernels.marching` 's rule (from ``t_near``, steps
+    ``clamp(t * cone, dt_min, dt_max)``, a sample where the cell of the step's midpoint is
+    occupied); slots and local coordinates are :func:`sample_cells`'s float32 arithmetic;
+    compositing is :func:`composite_density`'s (float64 transmittance, ``expm1``), except that
+    the ray stops once its transmittance is below ``early_stop`` instead of giving the rest
+    weight 0, and that samples of weight at most ``min_weight`` take the weight-averaged colour
+    of the ray's other samples instead of none (their weight is kept: opacity and depth are
+    exact). Networks: h = relu(W_in gamma(x) + b_in), the hidden layers, sigma =
+    exp(min(w_sigma . h + b_sigma + bias, 15)), rgb = sigmoid(W_rgb relu(W_color [h, gamma(d)]
+    + b_color) + b_rgb), with the weights of :class:`nerfbot.fields.kilonerf.KiloNeRFField`.
+
+    Args:
+        origins, dirs: (R, 3) float32; t_near, t_far: (R,) float32 (``ray_aabb``).
+        occ: (G, G, G) uint8 occupancy over [gmin, gmin + G cell]^3 (float64 corner, edge).
+        aabb: (2, 3) float32 bounds; cube_min: (3,) float32; cube_size: float32;
+            net_index: (N^3,) int64 slot of every network cell (-1: none).
+        w_*, b_*: the stacked float32 parameters. pos_freqs, dir_freqs: encoding octaves.
+        background: (R, 3) float32 colour behind each ray.
+        block_cap: scratch entries per block of :data:`RAY_BLOCK` rays (block b writes from
+            ``b * block_cap``); samples that find the room full are only counted, and their
+            rays get no colour (render them again with more room).
+    Outputs:
+        rgb (R, 3), opacity (R,) (sum of weights), depth (R,) expected ray distance (``t_far``
+        for rays with opacity <= 1e-6), counts (R,) int64 samples, src_start (R,) int64 where
+        each ray's samples start in the scratch; s_ts, s_te, s_sigma, s_w: float32 per-sample
+        interval, density and weight.
+    """
+    n_rays = origins.shape[0]
+    g = occ.shape[0]
+    n = int(round(net_index.shape[0] ** (1.0 / 3.0)))
+    nf = np.float32(n)
+    inv_cell = 1.0 / cell
+    hdim = w_in.shape[2]
+    d_in = w_in.shape[1]
+    n_hid = w_hid.shape[1]
+    d_dir = 3 * (1 + 2 * dir_freqs)
+    half, one, two = np.float32(0.5), np.float32(1.0), np.float32(2.0)
+    n_blocks = (n_rays + RAY_BLOCK - 1) // RAY_BLOCK
+    for item in prange(n_blocks):
+        blk = scattered(item, n_blocks)
+        enc = np.empty(d_in, np.float32)
+        denc = np.empty(d_dir, np.float32)
+        h = np.empty(hdim, np.float32)
+        h2 = np.empty(hdim, np.float32)
+        c = np.empty(w_color.shape[2], np.float32)
+        cursor = blk * block_cap
+        room_end = cursor + block_cap
+        for r in range(blk * RAY_BLOCK, min(n_rays, (blk + 1) * RAY_BLOCK)):
+            t = np.float64(t_near[r])
+            tf = np.float64(t_far[r])
+            trans = 1.0
+            acc = 0.0
+            dsum = 0.0
+            c0 = 0.0
+            c1 = 0.0
+            c2 = 0.0
+            w_read = 0.0
+            m = 0
+            have_dir = False
+            while t < tf and trans >= early_stop:
+                dt = min(max(t * cone, dt_min), dt_max)
+                tm64 = t + 0.5 * dt
+                ix = int(np.floor((origins[r, 0] + tm64 * dirs[r, 0] - gmin[0]) * inv_cell))
+                iy = int(np.floor((origins[r, 1] + tm64 * dirs[r, 1] - gmin[1]) * inv_cell))
+                iz = int(np.floor((origins[r, 2] + tm64 * dirs[r, 2] - gmin[2]) * inv_cell))
+                occupied = (0 <= ix < g and 0 <= iy < g and 0 <= iz < g
+                            and occ[ix, iy, iz] != 0)
+                ts = t
+                t += dt
+                if not occupied:
+                    continue
+                ts32 = np.float32(ts)
+                te32 = np.float32(min(ts + dt, tf))
+                # the sample's network and local coordinates (sample_cells' float32 arithmetic)
+                tm = half * (ts32 + te32)
+                inside = True
+                flat = 0
+                for a in range(3):
+                    p = origins[r, a] + dirs[r, a] * tm
+                    if not (p >= aabb[0, a] and p <= aabb[1, a]):
+                        inside = False
+                    u = (p - cube_min[a]) / cube_size * nf
+                    fl = np.floor(u)
+                    j = min(max(int(fl), 0), n - 1) if fl == fl else 0
+                    enc[a] = (u - np.float32(j)) * two - one
+                    flat = flat * n + j
+                k = net_index[flat] if inside else -1
+                sigma = 0.0
+                if k >= 0:
+                    _frequency_encode(enc[0], enc[1], enc[2], pos_freqs, enc)
+                    _dense(enc, d_in, w_in, b_in, k, 0, h)
+                    for j in range(hdim):
+                        h[j] = max(h[j], 0.0)
+                    for layer in range(n_hid):
+                        for j in range(hdim):
+                            h2[j] = b_hid[k, layer, j]
+                        for i in range(hdim):
+                            hi = h[i]
+                            for j in range(hdim):
+                                h2[j] += hi * w_hid[k, layer, i, j]
+                        for j in range(hdim):
+                            h[j] = max(h2[j], 0.0)
+                    raw = b_sigma[k, 0]
+                    for j in range(hdim):
+                        raw += h[j] * w_sigma[k, j, 0]
+                    sigma = np.exp(min(raw + np.float32(density_bias), np.float32(15.0)))
+                tau = min(np.float64(sigma) * max(np.float64(te32) - ts32, 0.0), 1e4)
+                em1 = np.expm1(-tau)
+                w = trans * -em1
+                trans *= 1.0 + em1
+                acc += w
+                dsum += w * 0.5 * (np.float64(ts32) + te32)
+                if w > min_weight and k >= 0:
+                    w_read += w
+                    if not have_dir:
+                        _frequency_encode(dirs[r, 0], dirs[r, 1], dirs[r, 2], dir_freqs, denc)
+                        have_dir = True
+                    _dense(h, hdim, w_color, b_color, k, 0, c)
+                    for i in range(d_dir):
+                        di = denc[i]
+                        for j in range(c.shape[0]):
+                            c[j] += di * w_color[k, hdim + i, j]
+                    l0 = b_rgb[k, 0]
+                    l1 = b_rgb[k, 1]
+                    l2 = b_rgb[k, 2]
+                    for j in range(c.shape[0]):
+                        cj = max(c[j], np.float32(0.0))
+                        l0 += cj * w_rgb[k, j, 0]
+                        l1 += cj * w_rgb[k, j, 1]
+                        l2 += cj * w_rgb[k, j, 2]
+                    c0 += w * _sigmoid32(l0)
+                    c1 += w * _sigmoid32(l1)
+                    c2 += w * _sigmoid32(l2)
+                q = cursor + m
+                if q < room_end:
+                    s_ts[q] = ts32
+                    s_te[q] = te32
+                    s_sigma[q] = sigma
+                    s_w[q] = w
+                m += 1
+            counts[r] = m
+            src_start[r] = cursor
+            cursor += m
+            opacity[r] = acc
+            depth[r] = dsum / acc if acc > 1e-6 else tf
+            if w_read > 0.0:  # the faint samples take the colour of the others
+                c0 *= acc / w_read
+                c1 *= acc / w_read
+                c2 *= acc / w_read
+            rest = 1.0 - np.float64(np.float32(acc))
+            rgb[r, 0] = c0 + rest * background[r, 0]
+            rgb[r, 1] = c1 + rest * background[r, 1]
+            rgb[r, 2] = c2 + rest * background[r, 2]
