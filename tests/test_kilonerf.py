@@ -253,7 +253,7 @@ def test_fused_renderer_matches_generic_marching():
     torch.testing.assert_close(fast.sigmas, ref.sigmas[shared], rtol=1e-4, atol=1e-3)
     torch.testing.assert_close(fast.weights, ref.weights[shared], rtol=1e-4, atol=1e-6)
     assert float(ref.weights[~shared].max()) < 1e-8
-    # float32 rendering (the default without AMX-BF16) takes this kernel
+    # float32 rendering (the default) takes this kernel
     torch.testing.assert_close(model.render_fast(rays).rgb, fast.rgb, rtol=0, atol=0)
 
 
