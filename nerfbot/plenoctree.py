@@ -292,6 +292,10 @@ class PlenOctreeConfig:
     """SH degree of the leaves' colour (3 (degree + 1)^2 coefficients per leaf)."""
     early_stop_transmittance: float = 1e-3
     """A ray stops after the leaf that brings its transmittance below this."""
+    color_min_weight: float = 1e-2
+    """Eval-mode rendering: leaf segments of at most this weight take the weight-averaged
+    colour of their ray's other segments instead of being shaded (0: shade all). Measured on
+    the tabletop in BENCHMARKS.md, issue 6."""
     rays_per_batch: int = 4096
     """Rays per batch when fine-tuning the leaves."""
 
@@ -313,6 +317,8 @@ class PlenOctreeModel(Model):
         if not 0.0 <= cfg.early_stop_transmittance < 1.0:
             raise ValueError(f"early_stop_transmittance must be in [0, 1), got "
                              f"{cfg.early_stop_transmittance}")
+        if not 0.0 <= cfg.color_min_weight < 1.0:
+            raise ValueError(f"color_min_weight must be in [0, 1), got {cfg.color_min_weight}")
         self.field = OctreeField(aabb, cfg.sh_degree)
         self.background = background
         self.register_buffer("aabb", torch.as_tensor(aabb, dtype=torch.float32).clone())
@@ -371,10 +377,15 @@ class PlenOctreeModel(Model):
         d = rays.directions.float().contiguous().numpy()
         bg = self.baked_background(rays.directions)
         leaf_data = field.leaf_data.detach().float().contiguous().numpy()
+        key = (field.leaf_data.data_ptr(), field.leaf_data.shape, field.leaf_data._version)
+        if self.__dict__.get("_leaf_sigma_key") != key:  # the densities alone, once per tree
+            self.__dict__["_leaf_sigma"] = np.ascontiguousarray(leaf_data[:, 0])
+            self.__dict__["_leaf_sigma_key"] = key
         consts = (self.aabb.float().contiguous().numpy(), field.child.contiguous().numpy(),
-                  leaf_data, np.ascontiguousarray(leaf_data[:, 0]),
+                  leaf_data, self.__dict__["_leaf_sigma"],
                   field.normalize.cube_min.double().numpy(), field.cube_size,
-                  float(self.config.early_stop_transmittance))
+                  float(self.config.early_stop_transmittance),
+                  float(self.config.color_min_weight))
 
         def run(o, d, bg, slot_start, slot_cap, scratch):
             m = len(slot_start)

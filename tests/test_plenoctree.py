@@ -203,6 +203,7 @@ def test_fused_renderer_equals_differentiable_path_on_random_tree(sh_degree, slo
 
     monkeypatch.setattr(plenoctree, "SLOT_SEGMENTS", slots)
     model, _, _ = _random_tree(seed=3, sh_degree=sh_degree)
+    model.config.color_min_weight = 0.0  # shade every segment, as the torch path does
     rays = _rays_towards_box(seed=4)
     _assert_same_render(model, rays, model.render_rays(rays),
                         model.render_segments(rays, reference=True))
@@ -252,11 +253,25 @@ def test_baked_octree_renders_close_to_source(tiny_capture, sh_run, baked):
     assert extra["octree_mb"] > 0 and extra["depth"] == BAKE_DEPTH
 
 
-def test_fused_renderer_equals_differentiable_path_on_baked_octree(tiny_capture, baked):
+def test_fused_renderer_equals_differentiable_path_on_baked_octree(tiny_capture, baked,
+                                                                    monkeypatch):
     octree, _, _ = baked
     ds = load_dataset(tiny_capture[0])
     rays = ds.cameras(ds.indices("test")).rays(0)
-    _assert_same_render(octree, rays, octree.render_rays(rays), octree.render_segments(rays))
+    default = octree.config.color_min_weight
+    monkeypatch.setattr(octree.config, "color_min_weight", 0.0)
+    exact = octree.render_rays(rays)
+    _assert_same_render(octree, rays, exact, octree.render_segments(rays))
+    # with the default, faint segments take their ray's mean colour: each pixel moves by at
+    # most their weight, and nothing else moves
+    monkeypatch.setattr(octree.config, "color_min_weight", default)
+    faint = octree.render_rays(rays)
+    skipped = exact.weights * (exact.weights <= default)
+    bound = torch.zeros(len(rays)).index_add_(0, exact.ray_indices, skipped)
+    assert default > 0 and float(bound.max()) > 1e-4
+    assert bool(((faint.rgb - exact.rgb).abs() <= bound[:, None] + 1e-5).all())
+    for key in ("opacity", "depth", "median_depth", "weights"):
+        torch.testing.assert_close(getattr(faint, key), getattr(exact, key))
 
 
 def test_visibility_pruning_drops_unseen_leaves_and_keeps_the_image(tiny_capture, baked):

@@ -38,8 +38,10 @@ _SCRATCH_KINDS = (np.float32,) * 4 + (np.int32,) + (np.float32,) * 3
 
 @dataclass
 class FastNeRFCacheConfig:
-    np: int = 256
-    """Position-cache cells per axis (as baked; the stored tensors' shapes are what count)."""
+    np: int = 192
+    """Position-cache cells per axis (as baked; the stored tensors' shapes are what count). On
+    the 128x128 tabletop 192 kept the source's PSNR better than 256 (-0.31 vs -0.40 dB) with
+    half the memory (80 vs 151 MB) and 1.4x faster renders; 128 lost 1.7 dB."""
     nd: int = 128
     """Direction-cache vertices per axis of the octahedral map (as baked)."""
     render_steps: int = 256

@@ -245,9 +245,9 @@ def walk_fill(origins, dirs, t_near, t_far, child, sigma, gmin, gsize, stop, sta
 
 
 @njit(parallel=True, fastmath=_SHADE_MATH, cache=True, nogil=True)
-def octree_render(origins, dirs, box, child, leaf_data, leaf_sigma, gmin, gsize, stop, background,
-                  slot_start, slot_cap, rgb, opacity, depth, far, counts, s_ts, s_te, s_sigma,
-                  s_w, s_leaf):
+def octree_render(origins, dirs, box, child, leaf_data, leaf_sigma, gmin, gsize, stop,
+                  min_weight, background, slot_start, slot_cap, rgb, opacity, depth, far, counts,
+                  s_ts, s_te, s_sigma, s_w, s_leaf):
     """Fused renderer: walk, composite with early termination, shade (SH colour per leaf).
 
     Each block of :data:`_BLOCK` rays is rendered in two passes: first every ray is walked and
@@ -258,6 +258,9 @@ def octree_render(origins, dirs, box, child, leaf_data, leaf_sigma, gmin, gsize,
 
     Args:
         origins, dirs, child, gmin, gsize, stop: as in :func:`walk_count`.
+        min_weight: segments of at most this weight are composited but their colour is not
+            read: they take the weight-averaged colour of the ray's other segments (0: every
+            segment of positive weight is shaded).
         box: (2, 3) float32 scene bounds: rays are walked where they are inside (t_near and
             t_far as :func:`nerfbot.sampling.ray_aabb` computes them).
         leaf_data: (leaves, 1 + 3 n_sh) float32 (see the module docstring); leaf_sigma: (leaves,)
@@ -329,9 +332,13 @@ def octree_render(origins, dirs, box, child, leaf_data, leaf_sigma, gmin, gsize,
             sh_basis(np.float64(dirs[q, 0]), np.float64(dirs[q, 1]), np.float64(dirs[q, 2]),
                      degree, basis)
             cr, cg, cb = 0.0, 0.0, 0.0
+            w_all = 0.0
+            w_read = 0.0
             for j in range(first, last):
                 wj = np.float64(s_w[j])
-                if wj > 0.0:
+                w_all += wj
+                if wj > min_weight:
+                    w_read += wj
                     lj = s_leaf[j]
                     kr, kg, kb = np.float32(0.0), np.float32(0.0), np.float32(0.0)
                     for i in range(n_sh):
@@ -341,6 +348,10 @@ def octree_render(origins, dirs, box, child, leaf_data, leaf_sigma, gmin, gsize,
                     cr += wj * _sigmoid32(kr)
                     cg += wj * _sigmoid32(kg)
                     cb += wj * _sigmoid32(kb)
+            if w_read > 0.0 and w_read < w_all:  # the faint segments take the others' colour
+                cr *= w_all / w_read
+                cg *= w_all / w_read
+                cb *= w_all / w_read
             rest = left[q - r0]
             rgb[q, 0] = cr + rest * background[q, 0]
             rgb[q, 1] = cg + rest * background[q, 1]
