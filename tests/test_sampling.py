@@ -486,3 +486,22 @@ def test_update_threshold_uses_step_opacity():
                     generator=torch.Generator().manual_seed(0))
         hot = 8 ** 2  # the last slab of cells in x
         assert int(grid.occupied.sum()) == (expect if expect else hot)
+
+
+def test_scattered_block_schedule_visits_every_ray_once():
+    """The parallel loops visit ray blocks in a scattered order (both cores get sky and scene
+    alike); every ray must still be visited exactly once, for any count."""
+    from nerfbot.kernels.schedule import SPREAD, block_range, scattered
+
+    for n_items, block in ((1, 64), (63, 64), (16384, 64), (16384, 32), (SPREAD * 64, 64),
+                           (5000, 7)):
+        n_blocks = -(-n_items // block)
+        seen = np.zeros(n_items, np.int64)
+        for i in range(n_blocks):
+            r0, r1 = block_range(i, n_items, block)
+            seen[r0:r1] += 1
+        assert (seen == 1).all(), (n_items, block)
+        order = [scattered(i, n_blocks) for i in range(n_blocks)]
+        assert sorted(order) == list(range(n_blocks))
+    # neighbouring iterations land far apart (what spreads an image's rows over the threads)
+    assert abs(scattered(1, 256) - scattered(0, 256)) > 16
