@@ -21,10 +21,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from nerfbot.block_render import ScratchArrays, render_blocks
 from nerfbot.encodings import FrequencyEncoding
 from nerfbot.fields.base import BoxNormalizer, Field, trunc_exp
 from nerfbot.kernels import kilonerf as _kk
-from nerfbot.block_render import ScratchArrays, render_blocks
 from nerfbot.models import OccupancyModel, OccupancyModelConfig
 from nerfbot.rendering import RenderOutput, ray_starts
 from nerfbot.sampling import OccupancyGrid, ray_aabb
@@ -661,7 +661,8 @@ class KiloNeRFModel(OccupancyModel):
         3. Per ray: weights, early termination (samples after the transmittance falls below
            ``early_stop_transmittance`` get weight 0), opacity, depth, median depth.
         4. Colours of the trunk's chunks that hold a sample whose weight exceeds
-           ``render_min_weight``; every such sample adds weight x colour to its ray.
+           ``render_min_weight``; every such sample adds weight x colour to its ray, and the
+           fainter samples take the weight-averaged colour of these.
         5. The background, read from its baked table
            (:meth:`~nerfbot.models.Model.baked_background`).
 

@@ -1,5 +1,6 @@
 """Numba CPU kernels of KiloNeRF: grouping samples by network, encoding them into the padded
-rows of the batched matmuls, and the single-pass renderer's per-sample and per-ray steps.
+rows of the batched matmuls, the batched renderer's per-sample and per-ray steps, and the fused
+renderer (:func:`render_fused`: every sample's network evaluated in place, in one pass).
 
 :func:`chunk_layout`: samples are assigned to networks (``slots``, -1 for none). Network ``k``
 with ``n_k`` samples gets ``ceil(n_k / C)`` consecutive chunks of ``C`` rows; chunks are ordered

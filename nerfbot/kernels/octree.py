@@ -253,8 +253,7 @@ def octree_render(origins, dirs, box, child, leaf_data, leaf_sigma, gmin, gsize,
     Each block of :data:`_BLOCK` rays is rendered in two passes: first every ray is walked and
     composited from the leaves' densities alone (``leaf_sigma``, small enough to stay in cache),
     its segments written to the scratch arrays; then the colours of all the block's segments
-    are read. The leaves' coefficients are the big table: read in one pass whose loads do not
-    wait for each other, their cache misses overlap instead of stalling the walk one by one.
+    are read from the big table of coefficients, in a loop whose loads do not wait on the walk.
 
     Args:
         origins, dirs, child, gmin, gsize, stop: as in :func:`walk_count`.
