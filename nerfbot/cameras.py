@@ -174,9 +174,10 @@ class Cameras:
             w, h, float(self.width[index]) / w, float(self.height[index]) / h,
             *(float(getattr(self, k)[index]) for k in ("fx", "fy", "cx", "cy")))
         c2w = self.c2w[index]
-        directions = dir_cam @ c2w[:3, :3].T
+        dev = c2w.device
+        directions = dir_cam.to(dev) @ c2w[:3, :3].T
         return Rays(c2w[:3, 3].expand_as(directions).contiguous(), directions,
-                    z_per_t.clone(), radii.clone())
+                    z_per_t.to(dev, copy=True), radii.to(dev, copy=True))
 
     def scaled(self, factor: float) -> "Cameras":
         """The same cameras imaging at ``factor`` times the resolution (``scaled(1 / K)``: K

@@ -54,6 +54,31 @@ def test_pixel_centre_convention_2x2():
     assert torch.equal(rays.origins, torch.zeros(4, 3))
 
 
+def test_image_rays_equal_pixel_rays_bitwise_and_are_not_shared():
+    """Cameras.rays caches the camera-frame rays of an intrinsics: its rays are bitwise the
+    pixel_rays of the pixel centres, at full and lower resolution, and writing into one
+    image's rays does not reach the next image's."""
+    poses = np.stack([random_pose(s) for s in (1, 2)])
+    cams = Cameras.from_numpy(poses, [[30.0, 31.0, 16.0, 12.5]] * 2, [[32, 24]] * 2)
+    for index in (0, 1):
+        for k in (1, 2, 3):
+            w, h = 32 // k, 24 // k
+            sx, sy = 32 / w, 24 / h
+            v, u = torch.meshgrid(torch.arange(h, dtype=torch.float32),
+                                  torch.arange(w, dtype=torch.float32), indexing="ij")
+            ref = pixel_rays(cams.c2w[index], cams.fx[index], cams.fy[index], cams.cx[index],
+                             cams.cy[index], (u.reshape(-1) + 0.5) * sx,
+                             (v.reshape(-1) + 0.5) * sy, sx, sy)
+            got = cams.rays(index, k)
+            for name in ("origins", "directions", "z_per_t", "radii"):
+                assert torch.equal(getattr(got, name), getattr(ref, name)), (index, k, name)
+    first = cams.rays(0)
+    first.z_per_t.mul_(2.0)
+    first.radii.zero_()
+    again = cams.rays(0)
+    assert not torch.equal(again.z_per_t, first.z_per_t) and bool((again.radii > 0).all())
+
+
 def test_centre_ray_of_odd_image_is_the_optical_axis():
     c2w = random_pose(0)
     w, h = 7, 5
