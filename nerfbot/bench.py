@@ -235,8 +235,12 @@ def config_key(point: dict) -> str:
 
 
 def expand_points(cfg: BenchConfig, sources: list[Source]) -> list[dict]:
-    """Every point of the sweep, in sweep order: scene, size, method, option values, budget,
-    repeat. A point is a JSON-able dict (see :func:`nerfbot.bench_point.run_point`)."""
+    """Every point of the sweep, repeat by repeat, each repeat in sweep order: scene, size,
+    method, option values, budget. The machine's speed drifts over a sweep (2x within minutes
+    here): running one repeat of every configuration before the next spreads the drift over
+    the configurations, where running each configuration's repeats back to back biased the
+    ones that happened to run in a slow spell. A point is a JSON-able dict (see
+    :func:`nerfbot.bench_point.run_point`)."""
     from nerfbot.methods import sweep_option_names
 
     points = []
@@ -268,6 +272,7 @@ def expand_points(cfg: BenchConfig, sources: list[Source]) -> list[dict]:
                          eval_images=cfg.eval_images, chamfer=cfg.chamfer_settings(),
                          keep_checkpoint=cfg.keep_checkpoints)
                 points.append(p)
+    points.sort(key=lambda p: p["repeat"])  # stable: sweep order within a repeat
     return points
 
 

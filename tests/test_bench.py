@@ -316,6 +316,20 @@ def test_resume_skips_done_points_force_reruns_failures_retry(tiny_capture, tmp_
         run_bench(cfg([1], eval_images=1))
 
 
+def test_points_run_repeat_by_repeat(tiny_capture, tmp_path, monkeypatch):
+    """One repeat of every configuration runs before the next repeat (the machine's drift is
+    spread over the configurations instead of biasing those run in a slow spell)."""
+    monkeypatch.setitem(EXECUTORS, "fake", _FakeExecutor)
+    monkeypatch.setattr(_FakeExecutor, "calls", [])
+    monkeypatch.setattr(_FakeExecutor, "fail", set())
+    run_bench(BenchConfig(data=[str(tiny_capture[0])], methods=["ngp"], budgets=[1, 2],
+                          out=tmp_path, budget_kind="steps", repeats=3, executor="fake",
+                          chamfer=False, progress=False))
+    order = [(json.loads(k)["repeat"], json.loads(json.loads(k)["config"])["budget"])
+             for k in _FakeExecutor.calls]
+    assert order == [(0, 1), (0, 2), (1, 1), (1, 2), (2, 1), (2, 2)]
+
+
 def test_bad_method_dataset_option_name_it(tiny_capture, tmp_path, capsys):
     def err(*args):
         capsys.readouterr()
