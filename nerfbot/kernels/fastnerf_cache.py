@@ -27,6 +27,7 @@ import numpy as np
 from numba import njit, prange
 
 from nerfbot.kernels.octahedral import bilinear
+from nerfbot.kernels.pixels import finish_pixel
 from nerfbot.kernels.schedule import scattered
 
 #: Rays per parallel work item of the renderer (scratch arrays are allocated once per item;
@@ -370,6 +371,8 @@ def render(origins, dirs, aabb, occ_box, background, bricks, n_bricks, values, d
             c0 = 0.0
             c1 = 0.0
             c2 = 0.0
+            w_all = 0.0
+            w_read = 0.0
             if last > first:
                 # colour logits are affine in the interpolated integers: fold beta and scales
                 bilinear(dir_weights, np.float64(dirs[q, 0]), np.float64(dirs[q, 1]),
@@ -384,8 +387,6 @@ def render(origins, dirs, aabb, occ_box, background, bricks, n_bricks, values, d
                     b0 += beta[i] * offset[1 + 3 * i]
                     b1 += beta[i] * offset[2 + 3 * i]
                     b2 += beta[i] * offset[3 + 3 * i]
-                w_all = 0.0
-                w_read = 0.0
                 for j in range(first, last):
                     wj = np.float64(s_w[j])
                     w_all += wj
@@ -403,14 +404,7 @@ def render(origins, dirs, aabb, occ_box, background, bricks, n_bricks, values, d
                     c0 += wj / (1.0 + math.exp(-l0))
                     c1 += wj / (1.0 + math.exp(-l1))
                     c2 += wj / (1.0 + math.exp(-l2))
-                if w_read > 0.0:  # the faint samples take the colour of the others
-                    c0 *= w_all / w_read
-                    c1 *= w_all / w_read
-                    c2 *= w_all / w_read
-            rest = left[q - r_first]
-            rgb[q, 0] = c0 + rest * background[q, 0]
-            rgb[q, 1] = c1 + rest * background[q, 1]
-            rgb[q, 2] = c2 + rest * background[q, 2]
+            finish_pixel(rgb, q, c0, c1, c2, w_all, w_read, left[q - r_first], background)
 
 
 def occupied_box(occ: np.ndarray, cmin: np.ndarray, cube_size: float) -> np.ndarray:

@@ -20,6 +20,7 @@ import numpy as np
 from numba import njit, prange, types
 from numba.extending import overload
 
+from nerfbot.kernels.pixels import finish_pixel, sigmoid32
 from nerfbot.kernels.schedule import scattered
 
 
@@ -115,6 +116,27 @@ def encode_rows(values, sin_pi, cos_pi, pos, n_freqs, out, col):
                 s, c = 2.0 * s * c, c * c - s * s
 
 
+@njit(inline="always")
+def _sample_cell(origins, dirs, r, tm, aabb, cube_min, cube_size, g, net_index, local):
+    """Network slot of the point ``o_r + d_r tm`` (-1 outside the bounds or without a network),
+    its local coordinates in [-1, 1] written into ``local`` (3,); the float32 arithmetic of
+    :meth:`nerfbot.fields.kilonerf.KiloNeRFField.slots` (G networks per axis)."""
+    gf = np.float32(g)
+    one, two = np.float32(1.0), np.float32(2.0)
+    inside = True
+    flat = 0
+    for a in range(3):
+        p = origins[r, a] + dirs[r, a] * tm
+        if not (p >= aabb[0, a] and p <= aabb[1, a]):
+            inside = False
+        u = (p - cube_min[a]) / cube_size * gf
+        fl = np.floor(u)
+        j = min(max(int(fl), 0), g - 1) if fl == fl else 0
+        local[a] = (u - np.float32(j)) * two - one
+        flat = flat * g + j
+    return net_index[flat] if inside else -1
+
+
 @njit(parallel=True, cache=True, nogil=True)
 def sample_cells(origins, dirs, ray_indices, t_starts, t_ends, aabb, cube_min, cube_size,
                  net_index, slots, local):
@@ -131,23 +153,11 @@ def sample_cells(origins, dirs, ray_indices, t_starts, t_ends, aabb, cube_min, c
         local: (M, 3) float32 output, local coordinates in [-1, 1].
     """
     g = int(round(net_index.shape[0] ** (1.0 / 3.0)))
-    gf = np.float32(g)
-    half, one, two = np.float32(0.5), np.float32(1.0), np.float32(2.0)
+    half = np.float32(0.5)
     for i in prange(ray_indices.shape[0]):
         r = ray_indices[i]
-        tm = half * (t_starts[i] + t_ends[i])
-        inside = True
-        flat = 0
-        for a in range(3):
-            p = origins[r, a] + dirs[r, a] * tm
-            if not (p >= aabb[0, a] and p <= aabb[1, a]):
-                inside = False
-            u = (p - cube_min[a]) / cube_size * gf
-            fl = np.floor(u)
-            j = min(max(int(fl), 0), g - 1) if fl == fl else 0
-            local[i, a] = (u - np.float32(j)) * two - one
-            flat = flat * g + j
-        slots[i] = net_index[flat] if inside else -1
+        slots[i] = _sample_cell(origins, dirs, r, half * (t_starts[i] + t_ends[i]), aabb,
+                                cube_min, cube_size, g, net_index, local[i])
 
 
 @njit(parallel=True, cache=True, nogil=True)
@@ -293,13 +303,6 @@ RAY_BLOCK = 64
 
 
 @njit(inline="always")
-def _sigmoid32(v):
-    """float32 logistic function (exp(-v) overflowing to inf gives 0, as it should)."""
-    one = np.float32(1.0)
-    return one / (one + np.exp(-np.float32(v)))
-
-
-@njit(inline="always")
 def _dense(x, n_in, w, b, k, row0, out):
     """out = b[k] + x[:n_in] @ w[k, row0:row0 + n_in] (the first ``n_in`` inputs; ``out``'s
     length is the layer's width). Loops over the outputs innermost: they are contiguous in
@@ -371,13 +374,12 @@ def render_fused(origins, dirs, t_near, t_far, occ, gmin, cell, dt_min, dt_max, 
     n_rays = origins.shape[0]
     g = occ.shape[0]
     n = int(round(net_index.shape[0] ** (1.0 / 3.0)))
-    nf = np.float32(n)
     inv_cell = 1.0 / cell
     hdim = w_in.shape[2]
     d_in = w_in.shape[1]
     n_hid = w_hid.shape[1]
     d_dir = 3 * (1 + 2 * dir_freqs)
-    half, one, two = np.float32(0.5), np.float32(1.0), np.float32(2.0)
+    half = np.float32(0.5)
     n_blocks = (n_rays + RAY_BLOCK - 1) // RAY_BLOCK
     for item in prange(n_blocks):
         blk = scattered(item, n_blocks)
@@ -414,20 +416,9 @@ def render_fused(origins, dirs, t_near, t_far, occ, gmin, cell, dt_min, dt_max, 
                     continue
                 ts32 = np.float32(ts)
                 te32 = np.float32(min(ts + dt, tf))
-                # the sample's network and local coordinates (sample_cells' float32 arithmetic)
-                tm = half * (ts32 + te32)
-                inside = True
-                flat = 0
-                for a in range(3):
-                    p = origins[r, a] + dirs[r, a] * tm
-                    if not (p >= aabb[0, a] and p <= aabb[1, a]):
-                        inside = False
-                    u = (p - cube_min[a]) / cube_size * nf
-                    fl = np.floor(u)
-                    j = min(max(int(fl), 0), n - 1) if fl == fl else 0
-                    enc[a] = (u - np.float32(j)) * two - one
-                    flat = flat * n + j
-                k = net_index[flat] if inside else -1
+                # the sample's network and local coordinates (sample_cells' arithmetic)
+                k = _sample_cell(origins, dirs, r, half * (ts32 + te32), aabb, cube_min,
+                                 cube_size, n, net_index, enc)
                 sigma = 0.0
                 if k >= 0:
                     _frequency_encode(enc[0], enc[1], enc[2], pos_freqs, enc)
@@ -471,9 +462,9 @@ def render_fused(origins, dirs, t_near, t_far, occ, gmin, cell, dt_min, dt_max, 
                         l0 += cj * w_rgb[k, j, 0]
                         l1 += cj * w_rgb[k, j, 1]
                         l2 += cj * w_rgb[k, j, 2]
-                    c0 += w * _sigmoid32(l0)
-                    c1 += w * _sigmoid32(l1)
-                    c2 += w * _sigmoid32(l2)
+                    c0 += w * sigmoid32(l0)
+                    c1 += w * sigmoid32(l1)
+                    c2 += w * sigmoid32(l2)
                 q = cursor + m
                 if q < room_end:
                     s_ts[q] = ts32
@@ -486,11 +477,5 @@ def render_fused(origins, dirs, t_near, t_far, occ, gmin, cell, dt_min, dt_max, 
             cursor += m
             opacity[r] = acc
             depth[r] = dsum / acc if acc > 1e-6 else tf
-            if w_read > 0.0:  # the faint samples take the colour of the others
-                c0 *= acc / w_read
-                c1 *= acc / w_read
-                c2 *= acc / w_read
-            rest = 1.0 - np.float64(np.float32(acc))
-            rgb[r, 0] = c0 + rest * background[r, 0]
-            rgb[r, 1] = c1 + rest * background[r, 1]
-            rgb[r, 2] = c2 + rest * background[r, 2]
+            finish_pixel(rgb, r, c0, c1, c2, acc, w_read, 1.0 - np.float64(np.float32(acc)),
+                         background)

@@ -28,6 +28,7 @@ import numpy as np
 from numba import njit, prange
 
 from nerfbot.kernels.boxes import ray_box
+from nerfbot.kernels.pixels import finish_pixel, sigmoid32
 from nerfbot.kernels.schedule import block_range
 from nerfbot.kernels.sh import sh_basis
 
@@ -150,13 +151,6 @@ def _reset_stack(nodes, corners, gmin):
     nodes[0] = 0
     corners[0, 0], corners[0, 1], corners[0, 2] = gmin[0], gmin[1], gmin[2]
     return 0
-
-
-@njit(inline="always")
-def _sigmoid32(v):
-    """float32 logistic function (exp(-v) overflowing to inf gives 0, as it should)."""
-    one = np.float32(1.0)
-    return one / (one + math.exp(-v))
 
 
 @njit(parallel=True, fastmath=False, cache=True, nogil=True)
@@ -344,17 +338,10 @@ def octree_render(origins, dirs, box, child, leaf_data, leaf_sigma, gmin, gsize,
                         kr += leaf_data[lj, 1 + i] * basis[i]
                         kg += leaf_data[lj, 1 + n_sh + i] * basis[i]
                         kb += leaf_data[lj, 1 + 2 * n_sh + i] * basis[i]
-                    cr += wj * _sigmoid32(kr)
-                    cg += wj * _sigmoid32(kg)
-                    cb += wj * _sigmoid32(kb)
-            if w_read > 0.0 and w_read < w_all:  # the faint segments take the others' colour
-                cr *= w_all / w_read
-                cg *= w_all / w_read
-                cb *= w_all / w_read
-            rest = left[q - r0]
-            rgb[q, 0] = cr + rest * background[q, 0]
-            rgb[q, 1] = cg + rest * background[q, 1]
-            rgb[q, 2] = cb + rest * background[q, 2]
+                    cr += wj * sigmoid32(kr)
+                    cg += wj * sigmoid32(kg)
+                    cb += wj * sigmoid32(kb)
+            finish_pixel(rgb, q, cr, cg, cb, w_all, w_read, left[q - r0], background)
 
 
 @njit(parallel=True, fastmath=False, cache=True, nogil=True)

@@ -1,0 +1,48 @@
+"""Render time and test PSNR of one trained run under several values of a render-time option.
+
+The option is set on the loaded model (``config.NAME`` or ``kilo_config.NAME``) without
+retraining or re-baking. Values are timed in alternating blocks (all test images with each
+value in turn, ROUNDS rounds; medians), as ``speed_ratio.py`` times pairs: the machine's speed
+drifts between processes.
+
+usage: python docs/benchmarks/render_options.py DATA RUN NAME V1,V2,...
+  e.g. ... bench/final/data_ns B/octree color_min_weight 0,1e-3,1e-2,3e-2
+"""
+import json
+import sys
+import time
+
+import numpy as np
+
+from nerfbot.data import load_dataset
+from nerfbot.evaluation import evaluate
+from nerfbot.query import render_image
+from nerfbot.training import load_model
+
+ROUNDS = 5
+if len(sys.argv) != 5:
+    sys.exit(__doc__)
+data, run, name, values = sys.argv[1], sys.argv[2], sys.argv[3], sys.argv[4].split(",")
+ds = load_dataset(data)
+cams = ds.cameras(ds.indices("test"))
+model = load_model(run)[0].eval()
+holder = next((c for c in (getattr(model, "kilo_config", None), getattr(model, "config", None))
+               if c is not None and hasattr(c, name)), None)
+if holder is None:
+    sys.exit(f"{run}: the model has no render option {name!r}")
+kind = type(getattr(holder, name))
+values = [kind(float(v)) for v in values]
+times = {v: [] for v in values}
+render_image(model, cams, 0)
+for _ in range(ROUNDS):
+    for v in values:
+        setattr(holder, name, v)
+        for i in range(len(cams)):
+            t0 = time.perf_counter()
+            render_image(model, cams, i)
+            times[v].append(time.perf_counter() - t0)
+for v in values:
+    setattr(holder, name, v)
+    psnr = evaluate(model, ds, "test", with_ssim=False)["psnr"]
+    print(json.dumps({name: v, "render_ms": round(1e3 * float(np.median(times[v])), 2),
+                      "psnr": round(psnr, 3)}), flush=True)
