@@ -270,13 +270,18 @@ def bake_cache(model, spec: dict, np_: int, nd: int, progress: bool = True,
     coarse &= src_occ
     del cells, occupied_cells
 
-    # pass 2: F_pos at the stored bricks' vertices, quantised to int16 per channel
-    scale, offset = quantization(lo_ch, hi_ch)
+    # pass 2: F_pos at the stored bricks' vertices, quantised per channel: the raw density to
+    # int16 (exp() magnifies its errors), the colour components to uint8
+    scale, offset = np.empty_like(lo_ch, np.float32), np.empty_like(lo_ch, np.float32)
+    scale[:1], offset[:1] = quantization(lo_ch[:1], hi_ch[:1], np.int16)
+    scale[1:], offset[1:] = quantization(lo_ch[1:], hi_ch[1:], np.uint8)
     v1 = BRICK + 1
-    values = np.empty((stored.size, v1, v1, v1, lo_ch.size), np.int16)
+    density = np.empty((stored.size, v1, v1, v1), np.int16)
+    colors = np.empty((stored.size, v1, v1, v1, lo_ch.size - 1), np.uint8)
     for s, v in _brick_outputs(field, stored, nb, cube_min, spacing, batch_bricks, progress,
                                "bake: cache"):
-        values[s:s + len(v)] = quantize(v, scale, offset)
+        density[s:s + len(v)] = quantize(v[..., 0], scale[0], offset[0], np.int16)
+        colors[s:s + len(v)] = quantize(v[..., 1:], scale[1:], offset[1:], np.uint8)
 
     with torch.no_grad():
         dir_weights = field.direction_weights(direction_grid(nd).reshape(-1, 3)).float()
@@ -289,8 +294,9 @@ def bake_cache(model, spec: dict, np_: int, nd: int, progress: bool = True,
             options[key] = src_opts[key]
     baked_spec = {**spec, "method": "fastnerf_cache", "options": options}
     baked: FastNeRFCacheModel = build_cache_model(baked_spec)
-    baked.field.set_cache(torch.from_numpy(bricks.reshape((nb,) * 3)), torch.from_numpy(values),
-                          torch.from_numpy(scale), torch.from_numpy(offset),
+    baked.field.set_cache(torch.from_numpy(bricks.reshape((nb,) * 3)), torch.from_numpy(density),
+                          torch.from_numpy(colors), torch.from_numpy(scale),
+                          torch.from_numpy(offset),
                           torch.from_numpy(coarse), dir_weights)
     baked.background.load_state_dict(model.background.state_dict())
     baked.eval()
@@ -343,18 +349,26 @@ def morton_code(ijk: np.ndarray) -> np.ndarray:
     return (spread(ijk[:, 0]) << 2) | (spread(ijk[:, 1]) << 1) | spread(ijk[:, 2])
 
 
-def quantization(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-channel 16-bit fixed point for values in [lo, hi] (C,): scale, offset (C,) float32
-    with v ~= q * scale + offset, q in [-32767, 32767] (error <= scale / 2). Dequantisation is
-    affine, so it commutes with trilinear interpolation: renderers interpolate the integers
-    and dequantise once per sample."""
+def _code_range(dtype) -> tuple[int, int]:
+    """The codes used of an integer dtype: symmetric for signed ones ([-32767, 32767] for
+    int16), all of them for unsigned ones ([0, 255] for uint8)."""
+    info = np.iinfo(dtype)
+    return (-info.max, info.max) if info.min < 0 else (0, info.max)
+
+
+def quantization(lo: np.ndarray, hi: np.ndarray, dtype=np.int16) -> tuple[np.ndarray, np.ndarray]:
+    """Per-channel fixed point in integer ``dtype`` for values in [lo, hi] (C,): scale, offset
+    (C,) float32 with v ~= q * scale + offset for the codes q of :func:`_code_range` (error
+    <= scale / 2). Dequantisation is affine, so it commutes with trilinear interpolation:
+    renderers interpolate the integers and dequantise once per sample."""
+    q_lo, q_hi = _code_range(dtype)
     lo = np.where(np.isfinite(lo), lo, 0.0)
     hi = np.where(np.isfinite(hi), hi, 0.0)
-    offset = (0.5 * (lo + hi)).astype(np.float32)
-    scale = np.maximum((hi - lo) / 65534.0, 1e-12).astype(np.float32)
-    return scale, offset
+    scale = np.maximum((hi - lo) / (q_hi - q_lo), 1e-12)
+    return scale.astype(np.float32), (lo - q_lo * scale).astype(np.float32)
 
 
-def quantize(v: np.ndarray, scale: np.ndarray, offset: np.ndarray) -> np.ndarray:
-    """v (..., C) float -> int16 codes for :func:`quantization`'s scale and offset."""
-    return np.rint((v - offset) / scale).clip(-32767, 32767).astype(np.int16)
+def quantize(v: np.ndarray, scale: np.ndarray, offset: np.ndarray, dtype=np.int16) -> np.ndarray:
+    """v (..., C) float -> ``dtype`` codes for :func:`quantization`'s scale and offset."""
+    q_lo, q_hi = _code_range(dtype)
+    return np.rint((v - offset) / scale).clip(q_lo, q_hi).astype(dtype)

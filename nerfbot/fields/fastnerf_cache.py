@@ -63,32 +63,41 @@ class CachedField(Field):
     direction over an octahedral map). Static: ``cond`` is ignored.
 
     Buffers (all sizes from shapes; layout in :mod:`nerfbot.kernels.fastnerf_cache`):
-    ``bricks`` (NB, NB, NB) int32 brick ids or -1; ``values`` (n_bricks, B+1, B+1, B+1, 1 + 3D)
-    int16 with per-channel ``scale`` / ``offset`` (1 + 3D,); ``occupancy`` (G, G, G) uint8 coarse
-    cells for empty-space skipping; ``dir_weights`` (ND, ND, D) float32. A point has zero
-    density unless it lies in the scene bounds and in a stored brick.
+    ``bricks`` (NB, NB, NB) int32 brick ids or -1; ``density_codes`` (n_bricks, B+1, B+1, B+1)
+    int16 raw-density codes and ``color_codes`` (n_bricks, B+1, B+1, B+1, 3D) uint8 component
+    codes, with per-channel ``scale`` / ``offset`` (1 + 3D,) (channel 0: the density);
+    ``occupancy`` (G, G, G) uint8 coarse cells for empty-space skipping; ``dir_weights``
+    (ND, ND, D) float32. A point has zero density unless it lies in the scene bounds and in a
+    stored brick.
     """
 
     def __init__(self, aabb):
         super().__init__()
         self.normalize = BoxNormalizer(aabb)
         self.register_buffer("bricks", torch.zeros(0, 0, 0, dtype=torch.int32))
-        self.register_buffer("values", torch.zeros(0, 0, 0, 0, 0, dtype=torch.int16))
+        self.register_buffer("density_codes", torch.zeros(0, 0, 0, 0, dtype=torch.int16))
+        self.register_buffer("color_codes", torch.zeros(0, 0, 0, 0, 0, dtype=torch.uint8))
         self.register_buffer("scale", torch.zeros(0))
         self.register_buffer("offset", torch.zeros(0))
         self.register_buffer("occupancy", torch.zeros(0, 0, 0, dtype=torch.uint8))
         self.register_buffer("dir_weights", torch.zeros(0, 0, 0))
 
-    def set_cache(self, bricks, values, scale, offset, occupancy, dir_weights) -> None:
-        """Install baked tensors (shapes as in the class docstring)."""
+    def set_cache(self, bricks, density, colors, scale, offset, occupancy, dir_weights) -> None:
+        """Install baked tensors (shapes and dtypes as in the class docstring)."""
         nb, d, v1 = bricks.shape[0], dir_weights.shape[-1], _kc.BRICK + 1
-        if bricks.shape != (nb,) * 3 or values.shape[1:] != (v1, v1, v1, 1 + 3 * d) \
-                or scale.shape != (1 + 3 * d,) or offset.shape != scale.shape:
-            raise ValueError(f"inconsistent cache shapes: bricks {tuple(bricks.shape)}, values "
-                             f"{tuple(values.shape)}, scale {tuple(scale.shape)}, dir_weights "
-                             f"{tuple(dir_weights.shape)}")
+        n = density.shape[0]
+        if bricks.shape != (nb,) * 3 or density.shape != (n, v1, v1, v1) \
+                or colors.shape != (n, v1, v1, v1, 3 * d) or scale.shape != (1 + 3 * d,) \
+                or offset.shape != scale.shape:
+            raise ValueError(f"inconsistent cache shapes: bricks {tuple(bricks.shape)}, density "
+                             f"{tuple(density.shape)}, colors {tuple(colors.shape)}, scale "
+                             f"{tuple(scale.shape)}, dir_weights {tuple(dir_weights.shape)}")
+        if density.dtype != torch.int16 or colors.dtype != torch.uint8:
+            raise ValueError(f"cache codes must be int16 (density) and uint8 (colors), got "
+                             f"{density.dtype} and {colors.dtype}")
         self.bricks = bricks.to(torch.int32).contiguous()
-        self.values = values.to(torch.int16).contiguous()
+        self.density_codes = density.contiguous()
+        self.color_codes = colors.contiguous()
         self.scale = scale.float().contiguous()
         self.offset = offset.float().contiguous()
         self.occupancy = occupancy.to(torch.uint8).contiguous()
@@ -96,13 +105,14 @@ class CachedField(Field):
 
     @property
     def empty(self) -> bool:
-        return (self.bricks.shape[0] < 1 or self.values.shape[0] == 0 or self.values.shape[1] < 2
-                or self.dir_weights.shape[0] < 2 or self.occupancy.shape[0] < 1)
+        return (self.bricks.shape[0] < 1 or self.density_codes.shape[0] == 0
+                or self.density_codes.shape[1] < 2 or self.dir_weights.shape[0] < 2
+                or self.occupancy.shape[0] < 1)
 
     @property
     def brick_size(self) -> int:
         """B, cells per brick edge."""
-        return int(self.values.shape[1]) - 1
+        return int(self.density_codes.shape[1]) - 1
 
     @property
     def cells_per_axis(self) -> int:
@@ -116,8 +126,8 @@ class CachedField(Field):
     def cache_bytes(self) -> int:
         """Memory of the cache tensors in bytes."""
         return sum(t.numel() * t.element_size() for t in
-                   (self.bricks, self.values, self.scale, self.offset, self.occupancy,
-                    self.dir_weights))
+                   (self.bricks, self.density_codes, self.color_codes, self.scale, self.offset,
+                    self.occupancy, self.dir_weights))
 
     # -- lookups (the torch twin of the kernel's) ----------------------------------------------
     def lookup(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -138,16 +148,17 @@ class CachedField(Field):
         a = i - b * bs
         bid = self.bricks[b[:, 0], b[:, 1], b[:, 2]].long()
         valid = (bid >= 0) & self.normalize.inside(x.float())
-        flat = self.values.reshape(-1, self.values.shape[-1])
+        codes = torch.cat([self.density_codes.reshape(-1, 1).float(),
+                           self.color_codes.reshape(-1, 3 * d).float()], 1)
         base = ((bid.clamp_min(0) * v1 + a[:, 0]) * v1 + a[:, 1]) * v1 + a[:, 2]
-        acc = torch.zeros(n, flat.shape[1], device=x.device)
+        acc = torch.zeros(n, codes.shape[1], device=x.device)
         for c in range(8):
             bits = [(c >> 2) & 1, (c >> 1) & 1, c & 1]
             wc = torch.ones(n, device=x.device)
             for k in range(3):
                 wc = wc * (w[:, k] if bits[k] else 1.0 - w[:, k])
             row = base + bits[0] * v1 * v1 + bits[1] * v1 + bits[2]
-            acc = acc + wc[:, None] * flat[row].float()
+            acc = acc + wc[:, None] * codes[row]
         deq = acc * self.scale + self.offset
         return deq[:, 0].clamp_max(_kc.RAW_MAX), deq[:, 1:], valid
 
@@ -254,26 +265,28 @@ class FastNeRFCacheModel(Model):
                          rays.z_per_t)
 
     def _kernel_cache(self) -> tuple:
-        """The cache as the kernel's arrays, after the box around the occupied cells, the
-        pooled occupancy and the densities alone (all three derived once per cache)."""
+        """The cache as the kernel's arrays, after the box around the occupied cells and the
+        pooled occupancy (both derived once per cache)."""
         f = self.field
         cmin = f.normalize.cube_min.double().numpy()
         if f.empty:  # a degenerate cache: every ray sees the background
             return (np.stack([cmin, cmin]), np.full((1, 1, 1), -1, np.int32), 0,
-                    np.zeros((0, 1), np.int16), np.zeros(0, np.int16), np.zeros(1, np.float32),
+                    np.zeros(0, np.int16), np.zeros((0, 0), np.uint8), np.zeros(1, np.float32),
                     np.zeros(1, np.float32),
                     np.zeros((1, 1, 1), np.uint8), np.zeros((1, 1, 1), np.uint8),
                     np.zeros((2, 2, 0), np.float32))
-        values = f.values.numpy().reshape(-1, f.values.shape[-1])
-        key = tuple((t.data_ptr(), t.shape, t._version) for t in (f.occupancy, f.values))
+        key = (f.occupancy.data_ptr(), f.occupancy.shape, f.occupancy._version)
         if self._derived_key != key:
             occ = f.occupancy.numpy()
             self._derived = (_kc.occupied_box(occ, cmin, float(f.normalize.cube_size)),
-                             _kc.pool_occupancy(occ), np.ascontiguousarray(values[:, 0]))
+                             _kc.pool_occupancy(occ))
             self._derived_key = key
-        box, pooled, density = self._derived
-        return (box, f.bricks.numpy(), int(f.values.shape[0]), values, density, f.scale.numpy(),
-                f.offset.numpy(), f.occupancy.numpy(), pooled, f.dir_weights.numpy())
+        box, pooled = self._derived
+        colors = f.color_codes.numpy()
+        return (box, f.bricks.numpy(), int(f.density_codes.shape[0]),
+                f.density_codes.numpy().reshape(-1), colors.reshape(-1, colors.shape[-1]),
+                f.scale.numpy(), f.offset.numpy(), f.occupancy.numpy(), pooled,
+                f.dir_weights.numpy())
 
     @torch.no_grad()
     def render_fused(self, rays: Rays) -> RenderOutput:

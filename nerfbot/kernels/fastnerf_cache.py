@@ -4,11 +4,12 @@ The cache (see :mod:`nerfbot.fields.fastnerf_cache`) is a grid of NC = NB * B ce
 the scene cube (vertex spacing h = cube_size / NC), stored sparsely in bricks of B^3 cells:
 
 * ``bricks`` (NB, NB, NB) int32: the id of brick (I, J, K), or -1 where nothing is stored;
-* ``values`` (n_bricks * (B+1)^3, 1 + 3D) int16: the (B+1)^3 vertices of each brick, vertex
-  (a, b, c) of brick ``id`` (grid vertex (B I + a, B J + b, B K + c)) at row
-  ``((id * (B+1) + a) * (B+1) + b) * (B+1) + c``, dequantised as ``q * scale + offset`` per
-  channel: channel 0 is the raw density (sigma = exp(min(raw, 15))), channel 1 + 3i + c the
-  component u_i[c];
+* ``density`` (n_bricks * (B+1)^3,) int16 and ``colors`` (n_bricks * (B+1)^3, 3D) uint8: the
+  (B+1)^3 vertices of each brick, vertex (a, b, c) of brick ``id`` (grid vertex
+  (B I + a, B J + b, B K + c)) at row ``((id * (B+1) + a) * (B+1) + b) * (B+1) + c``, each
+  channel dequantised as ``q * scale + offset``: channel 0 (``density``) is the raw density
+  (sigma = exp(min(raw, 15))), channel 1 + 3i + c (``colors[:, 3i + c]``) the component
+  u_i[c];
 * ``occ`` (G, G, G) uint8: coarse cells of the same cube holding occupied cache cells (for
   empty-space skipping);
 * ``dir_weights`` (ND, ND, D) float32: beta at the vertices of the octahedral direction map.
@@ -166,23 +167,24 @@ def _trilinear(density, row, v1, wx, wy, wz):
 
 
 @njit(inline="always")
-def _interpolate(values, row, v1, wx, wy, wz, acc):
-    """Channels 1.. of ``values`` interpolated like :func:`_trilinear`, written into ``acc``."""
+def _interpolate(colors, row, v1, wx, wy, wz, acc):
+    """Every channel of ``colors`` (rows of uint8 codes) interpolated like :func:`_trilinear`,
+    written into ``acc``."""
     one = np.float32(1.0)
     ux, uy, uz = one - wx, one - wy, one - wz
     w0, w1, w2, w3 = ux * uy * uz, ux * uy * wz, ux * wy * uz, ux * wy * wz
     w4, w5, w6, w7 = wx * uy * uz, wx * uy * wz, wx * wy * uz, wx * wy * wz
     r0, r2, r4 = row, row + v1, row + v1 * v1
     r6 = r4 + v1
-    for c in range(1, acc.shape[0]):
-        acc[c] = (w0 * np.float32(values[r0, c]) + w1 * np.float32(values[r0 + 1, c])
-                  + w2 * np.float32(values[r2, c]) + w3 * np.float32(values[r2 + 1, c])
-                  + w4 * np.float32(values[r4, c]) + w5 * np.float32(values[r4 + 1, c])
-                  + w6 * np.float32(values[r6, c]) + w7 * np.float32(values[r6 + 1, c]))
+    for c in range(acc.shape[0]):
+        acc[c] = (w0 * np.float32(colors[r0, c]) + w1 * np.float32(colors[r0 + 1, c])
+                  + w2 * np.float32(colors[r2, c]) + w3 * np.float32(colors[r2 + 1, c])
+                  + w4 * np.float32(colors[r4, c]) + w5 * np.float32(colors[r4 + 1, c])
+                  + w6 * np.float32(colors[r6, c]) + w7 * np.float32(colors[r6 + 1, c]))
 
 
 @njit(parallel=True, fastmath=_FAST, cache=True)
-def render(origins, dirs, aabb, occ_box, background, bricks, n_bricks, values, density, scale,
+def render(origins, dirs, aabb, occ_box, background, bricks, n_bricks, density, colors, scale,
            offset, occ, occ2, dir_weights, cmin, cube_size, dt_min, dt_max, cone,
            stop_transmittance, min_weight, block_cap, rgb, opacity, depth, far, counts, src_start, s_ts, s_te,
            s_sigma, s_w, s_row, s_fx, s_fy, s_fz):
@@ -198,18 +200,17 @@ def render(origins, dirs, aabb, occ_box, background, bricks, n_bricks, values, d
     ray's other samples (their weight is kept, so opacity and depth are exact).
 
     Each block of :data:`RAY_BLOCK` rays is rendered in two passes. First every ray is marched
-    and composited from densities alone, read from ``density`` (one int16 per vertex, 1/25 of
+    and composited from densities alone, read from ``density`` (one int16 per vertex, 1/13 of
     the cache); samples are looked up in rounds (see :data:`ROUND_MIN`) whose memory accesses
-    overlap. Then the colours of all the block's samples are read from ``values``: loads that
+    overlap. Then the colours of all the block's samples are read from ``colors``: loads that
     do not wait for each other, so the cache misses on the big table overlap too.
 
     Args:
         origins, dirs: (R, 3) float32, unit directions; aabb: (2, 3) float64 scene bounds;
             occ_box: (2, 3) float64 box around the occupied cells (marching skips to it).
         background: (R, 3) float32 colour behind each ray.
-        bricks, values, scale, offset, occ, dir_weights: the cache (module docstring), values
-            as (n_bricks * (B+1)^3, C) with B = :data:`BRICK`; n_bricks: stored bricks;
-            density: (n_bricks * (B+1)^3,) int16, ``values[:, 0]``.
+        bricks, density, colors, scale, offset, occ, dir_weights: the cache (module
+            docstring), with B = :data:`BRICK`; n_bricks: stored bricks.
         occ2: (G2, G2, G2) uint8, occ max-pooled over :data:`POOL`^3 blocks.
         cmin: (3,) float64 cube corner; cube_size: cube edge, metres.
         block_cap: scratch entries per block of :data:`RAY_BLOCK` rays: the rays of block b
@@ -224,8 +225,8 @@ def render(origins, dirs, aabb, occ_box, background, bricks, n_bricks, values, d
         first vertex row and position in the cell.
     """
     n_rays = origins.shape[0]
-    n_ch = values.shape[1]
-    n_comp = (n_ch - 1) // 3
+    n_ch = colors.shape[1]
+    n_comp = n_ch // 3
     v1 = BRICK + 1
     nc = bricks.shape[0] * BRICK
     g = occ.shape[0]
@@ -393,14 +394,14 @@ def render(origins, dirs, aabb, occ_box, background, bricks, n_bricks, values, d
                     if wj <= min_weight:
                         continue
                     w_read += wj
-                    _interpolate(values, s_row[j], v1, s_fx[j], s_fy[j], s_fz[j], acc)
+                    _interpolate(colors, s_row[j], v1, s_fx[j], s_fy[j], s_fz[j], acc)
                     l0 = b0
                     l1 = b1
                     l2 = b2
                     for i in range(n_comp):
-                        l0 += coef[3 * i] * acc[1 + 3 * i]
-                        l1 += coef[3 * i + 1] * acc[2 + 3 * i]
-                        l2 += coef[3 * i + 2] * acc[3 + 3 * i]
+                        l0 += coef[3 * i] * acc[3 * i]
+                        l1 += coef[3 * i + 1] * acc[3 * i + 1]
+                        l2 += coef[3 * i + 2] * acc[3 * i + 2]
                     c0 += wj / (1.0 + math.exp(-l0))
                     c1 += wj / (1.0 + math.exp(-l1))
                     c2 += wj / (1.0 + math.exp(-l2))
