@@ -283,3 +283,18 @@ def test_bake_cli_end_to_end(tiny_capture, tmp_path, capsys):
     assert np.median(np.abs(z[both] - z_src[both])) < 0.02
     sigma, _ = model.field.density(torch.rand(100, 3) * 0.1)
     assert sigma.shape == (100,) and bool(torch.isfinite(sigma).all())
+
+
+def test_empty_distance_is_the_capped_chebyshev_distance_to_occupied_cells():
+    """The renderer jumps out of the (2k - 1)^3 cells around a cell at distance k: they must
+    all be empty, so the distance may never exceed the true one."""
+    from nerfbot.kernels.fastnerf_cache import empty_distance
+
+    occ = np.zeros((12, 12, 12), np.uint8)
+    occ[2, 3, 4] = occ[10, 9, 1] = occ[5, 5, 5] = 1
+    dist = empty_distance(occ, cap=6)
+    ijk = np.stack(np.meshgrid(*[np.arange(12)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    full = np.abs(ijk[:, None, :] - np.argwhere(occ)[None]).max(-1).min(1).reshape(occ.shape)
+    assert np.array_equal(dist, np.minimum(full, 6)) and dist.max() == 6
+    assert np.array_equal(empty_distance(np.zeros((4, 4, 4), np.uint8), cap=3), np.full((4,) * 3, 3))
+    assert not empty_distance(np.ones((3, 3, 3), np.uint8)).any()

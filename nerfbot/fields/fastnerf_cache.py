@@ -266,27 +266,25 @@ class FastNeRFCacheModel(Model):
 
     def _kernel_cache(self) -> tuple:
         """The cache as the kernel's arrays, after the box around the occupied cells and the
-        pooled occupancy (both derived once per cache)."""
+        distance to them (both derived once per cache)."""
         f = self.field
         cmin = f.normalize.cube_min.double().numpy()
         if f.empty:  # a degenerate cache: every ray sees the background
             return (np.stack([cmin, cmin]), np.full((1, 1, 1), -1, np.int32), 0,
                     np.zeros(0, np.int16), np.zeros((0, 0), np.uint8), np.zeros(1, np.float32),
-                    np.zeros(1, np.float32),
-                    np.zeros((1, 1, 1), np.uint8), np.zeros((1, 1, 1), np.uint8),
+                    np.zeros(1, np.float32), np.full((1, 1, 1), _kc.DISTANCE_CAP, np.uint8),
                     np.zeros((2, 2, 0), np.float32))
         key = (f.occupancy.data_ptr(), f.occupancy.shape, f.occupancy._version)
         if self._derived_key != key:
             occ = f.occupancy.numpy()
             self._derived = (_kc.occupied_box(occ, cmin, float(f.normalize.cube_size)),
-                             _kc.pool_occupancy(occ))
+                             _kc.empty_distance(occ))
             self._derived_key = key
-        box, pooled = self._derived
+        box, dist = self._derived
         colors = f.color_codes.numpy()
         return (box, f.bricks.numpy(), int(f.density_codes.shape[0]),
                 f.density_codes.numpy().reshape(-1), colors.reshape(-1, colors.shape[-1]),
-                f.scale.numpy(), f.offset.numpy(), f.occupancy.numpy(), pooled,
-                f.dir_weights.numpy())
+                f.scale.numpy(), f.offset.numpy(), dist, f.dir_weights.numpy())
 
     @torch.no_grad()
     def render_fused(self, rays: Rays) -> RenderOutput:
