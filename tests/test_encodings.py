@@ -321,3 +321,44 @@ def test_sh_kernel_path_matches_float64_reference_and_the_gradient_path(degree):
     graded = spherical_harmonics(d.clone().requires_grad_(True), degree)
     assert graded.requires_grad or degree == 0  # degree 0 is a constant
     torch.testing.assert_close(fast, graded.detach(), atol=1e-6, rtol=0)
+
+
+def test_sh_warmup_fades_bands_in_one_after_another():
+    """``sh_warmup``: band l >= 1 of the direction encoding opens over the l-th part of the
+    warm-up, band 0 is always on, and afterwards nothing is scaled."""
+    from nerfbot.fields.ngp import sh_band_weights
+
+    assert sh_band_weights(4, 0.0, 0.0) is None and sh_band_weights(0, 0.5, 0.0) is None
+    assert sh_band_weights(4, 0.5, 0.5) is None and sh_band_weights(4, 0.5, 0.9) is None
+    band = torch.tensor([b for b in range(5) for _ in range(2 * b + 1)])
+    start = sh_band_weights(4, 0.5, 0.0)
+    assert start.shape == (25,) and torch.equal(start, (band == 0).float())
+    mid = sh_band_weights(4, 0.5, 0.25)  # bands 1 and 2 open, 3 and 4 closed
+    torch.testing.assert_close(mid, (band <= 2).float())
+    quarter = sh_band_weights(4, 0.5, 0.0625)  # half-way through band 1's ramp
+    torch.testing.assert_close(quarter[1:4], torch.full((3,), 0.5))
+    ws = torch.stack([sh_band_weights(4, 0.5, p) for p in np.linspace(0, 0.49, 50)])
+    assert bool((ws[1:] >= ws[:-1]).all())  # bands only open
+
+
+def test_ngp_sh_warmup_starts_view_independent_and_trains_each_band_once_open():
+    from nerfbot.fields.ngp import NGPField, NGPFieldConfig
+
+    aabb = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    field = NGPField(aabb, NGPFieldConfig(sh_warmup=0.4, backend="torch", n_levels=4,
+                                          log2_hashmap_size=10), seed=0)
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(64, 3, generator=g) * 2 - 1
+    d = torch.nn.functional.normalize(torch.randn(64, 3, generator=g), dim=-1)
+    feat = field.density(x)[1]
+    # zero weights on bands >= 1: the same colour from every direction at the start
+    torch.testing.assert_close(field.color(feat, d), field.color(feat, -d))
+    cols = slice(field.config.geo_feat_dim + 1, None)
+    for progress, open_ in ((0.0, False), (0.5, True)):
+        field.zero_grad()
+        field.before_step(0, progress)
+        field.color(field.density(x)[1], d).sum().backward()
+        grad = field.color_mlp[0].weight.grad[:, cols]
+        assert bool((grad.abs().sum() > 0) == open_)
+    with pytest.raises(ValueError, match="sh_warmup"):
+        NGPField(aabb, NGPFieldConfig(sh_warmup=1.0))

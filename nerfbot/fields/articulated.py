@@ -140,6 +140,12 @@ class ArticulatedField(Field):
             den = den.index_add(0, idx, sk[idx])
         return num / den.clamp_min(1e-12)[:, None]
 
+    def before_step(self, step: int, progress: float) -> dict:
+        out: dict = {}
+        for field, _ in self._fields():
+            out.update(field.before_step(step, progress))
+        return out
+
     def occupancy_density(self, x, generator=None):
         best = None
         for _ in range(self.aconfig.occupancy_configs):

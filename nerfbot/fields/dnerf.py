@@ -107,6 +107,9 @@ class DNeRFField(Field):
     def occupancy_density(self, x, generator=None):
         return self.density(x, self.conditioning.sample(x.shape[0], generator, x.device))[0]
 
+    def before_step(self, step: int, progress: float) -> dict:
+        return self.canonical.before_step(step, progress)
+
     def regularizer(self) -> Optional[torch.Tensor]:
         dc = self.dconfig
         if dc.deform_encoding != "planes":

@@ -32,6 +32,13 @@ class NGPFieldConfig:
     """Hidden layers of the colour MLP."""
     sh_degree: int = 4
     """Spherical-harmonics degree of the view-direction encoding (0 = view-independent)."""
+    sh_warmup: float = 0.0
+    """Fraction of the training budget over which view dependence is brought in, one SH band
+    after another (as 3D Gaussian Splatting adds bands during training): band l >= 1 fades in
+    with a cosine ramp over the l-th of ``sh_degree`` equal parts of the warm-up, and the colour
+    MLP's weights on those bands start at zero. Early in training, view-dependent colour can
+    explain away wrong geometry (the shape-radiance ambiguity) and slows short budgets down.
+    0: every band from the start."""
     backend: str = "numba"
     """Hash-encoding implementation: "numba" (fast CPU) or "torch" (reference twin)."""
     initial_transmittance: float = 0.2
@@ -62,6 +69,14 @@ class NGPField(Field):
         self.dir_encoding = SHEncoding(cfg.sh_degree)
         self.color_mlp = mlp(cfg.geo_feat_dim + self.dir_encoding.out_dim, cfg.hidden,
                              cfg.color_layers, 3)
+        if not 0.0 <= cfg.sh_warmup < 1.0:
+            raise ValueError(f"sh_warmup must be in [0, 1), got {cfg.sh_warmup}")
+        #: (out_dim,) weights of the direction encoding's components during the SH warm-up
+        #: (None: all 1; not saved: :meth:`before_step` derives it from the training progress)
+        self._sh_weights: Optional[torch.Tensor] = None
+        if cfg.sh_warmup > 0 and cfg.sh_degree > 0:
+            with torch.no_grad():
+                self.color_mlp[0].weight[:, cfg.geo_feat_dim + 1:] = 0.0
 
         if not 0.0 < cfg.initial_transmittance < 1.0:
             raise ValueError(f"initial_transmittance must be in (0, 1), got {cfg.initial_transmittance}")
@@ -99,6 +114,29 @@ class NGPField(Field):
         return sigma, h[:, 1:]
 
     def color(self, feat: torch.Tensor, d: torch.Tensor, cond: Optional[torch.Tensor] = None):
+        sh = self.dir_encoding(d)
+        if self._sh_weights is not None:
+            sh = sh * self._sh_weights.to(sh.device)
         with self._autocast(d):
-            h = self.color_mlp(torch.cat([feat, self.dir_encoding(d)], -1))
+            h = self.color_mlp(torch.cat([feat, sh], -1))
         return torch.sigmoid(h.float())
+
+    def before_step(self, step: int, progress: float) -> dict:
+        """During the SH warm-up (:attr:`NGPFieldConfig.sh_warmup`), weigh band l >= 1 by
+        0.5 (1 - cos(pi r)), r = clamp(progress / warmup * degree - (l - 1), 0, 1)."""
+        self._sh_weights = sh_band_weights(self.config.sh_degree, self.config.sh_warmup,
+                                           progress)
+        return {}
+
+
+def sh_band_weights(degree: int, warmup: float, progress: float) -> Optional[torch.Tensor]:
+    """((degree + 1)^2,) weights of the SH components at ``progress`` in [0, 1] of training
+    (component k is in band floor(sqrt(k))); None once every band is fully in (or without a
+    warm-up)."""
+    if warmup <= 0 or degree == 0 or progress >= warmup:
+        return None
+    band = torch.arange(degree + 1, dtype=torch.float64)
+    ramp = (progress / warmup * degree - (band - 1)).clamp(0.0, 1.0)
+    per_band = 0.5 * (1.0 - torch.cos(math.pi * ramp))
+    per_band[0] = 1.0
+    return per_band.repeat_interleave(2 * band.long() + 1).float()
