@@ -7,10 +7,7 @@ Two decisions, each explained in :attr:`AutoChoice.reasons`:
    - conditioning: a static capture gets none; time-varying captures need a time-conditioned
      field, captures with moving joints a joint-conditioned one (methods of those kinds are
      chosen when the registry has them, otherwise a clear error says what is missing);
-   - no specular material → view-independent colour (spherical-harmonics degree 0); specular
-     materials → view-dependent colour, brought in one SH band at a time over the first
-     :data:`SPECULAR_SH_WARMUP` of the budget (geometry settles before view-dependent colour
-     can explain it away);
+   - no specular material → view-independent colour (spherical-harmonics degree 0);
    - transparent geoms → keep low-density structure (a 10x lower occupancy threshold, so faint
      glass is never pruned), the distortion loss against floaters, and threshold depth as the
      run's default depth query (Dex-NeRF);
@@ -36,10 +33,6 @@ log = logging.getLogger(__name__)
 TRANSPARENT_GRID_THRESHOLD = 0.001
 #: Distortion-loss weight for scenes with transparent geoms (fewer floaters at low thresholds).
 TRANSPARENT_DISTORTION = 0.01
-#: Fraction of the budget over which specular scenes bring view dependence in, one SH band at a
-#: time (``sh_warmup`` of ngp-based fields): at 250 steps on the tabletop, +0.36 dB over
-#: SH degree 4 from the start (two seeds; BENCHMARKS.md, issue 4).
-SPECULAR_SH_WARMUP = 0.6
 #: Budgets (training seconds) of the built-in sweep when no bench table is given.
 BUILTIN_SWEEP_SECONDS = (30.0, 60.0, 120.0)
 
@@ -107,10 +100,7 @@ def choose_from_manifest(manifest: Optional[dict]) -> AutoChoice:
         choice.options["sh_degree"] = 0
         choice.reasons.append("view-independent colour (SH degree 0): no specular material")
     else:
-        choice.options["sh_warmup"] = SPECULAR_SH_WARMUP
-        choice.reasons.append(
-            "view-dependent colour (SH degree 4): specular materials present; its bands come "
-            f"in one at a time over the first {SPECULAR_SH_WARMUP:.0%} of the budget")
+        choice.reasons.append("view-dependent colour (SH degree 4): specular materials present")
     transparent = manifest.get("transparent_geoms") or []
     if transparent:
         choice.options["grid_threshold"] = TRANSPARENT_GRID_THRESHOLD

@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from nerfbot.auto import (SPECULAR_SH_WARMUP, TRANSPARENT_GRID_THRESHOLD, auto_train_config,
-                          bench_rows, choose_budget, choose_from_manifest)
+from nerfbot.auto import (TRANSPARENT_GRID_THRESHOLD, auto_train_config, bench_rows,
+                          choose_budget, choose_from_manifest)
 
 
 def _manifest(**kw):
@@ -21,8 +21,6 @@ def test_static_specular_scene_keeps_view_dependence_and_no_conditioning():
     c = choose_from_manifest(_manifest())
     assert c.method == "ngp" and c.conditioning == "static"
     assert "sh_degree" not in c.options and not c.query_defaults
-    assert c.options["sh_warmup"] == SPECULAR_SH_WARMUP
-    assert not choose_from_manifest(_manifest(specular=False)).options.get("sh_warmup")
 
 
 def test_matte_scene_gets_view_independent_colour():
@@ -93,7 +91,6 @@ def test_train_auto_on_a_capture_writes_its_reasons(tiny_capture, tmp_path):
     auto = json.loads((run / "auto.json").read_text())
     assert auto["method"] == "ngp" and auto["conditioning"] == "static"
     assert "sh_degree" not in auto["options"]                 # the tabletop is specular
-    assert auto["options"]["sh_warmup"] == SPECULAR_SH_WARMUP
     cfg = json.loads((run / "config.json").read_text())
     assert cfg["spec"]["method"] == "ngp"
     with pytest.raises(SystemExit, match="need --method auto"):
