@@ -171,8 +171,10 @@ def build_from_spec(spec: dict, device="cpu") -> Model:
 
 
 def warm_up_kernels() -> None:
-    """Compile (or load from cache) the numba kernels so compilation never counts as training."""
-    from nerfbot.kernels import hashgrid, marching, scan
+    """Compile (or load from cache) the numba kernels a training step calls, so compilation
+    never counts as training (on a fresh install, ``ray_aabb`` and ``sh_encode`` once compiled
+    ~2 s into a 30 s budget)."""
+    from nerfbot.kernels import boxes, hashgrid, marching, scan, sh
 
     x = np.random.default_rng(0).random((8, 3), dtype=np.float32)
     res, off = hashgrid.level_layout(2, 4, 2, 4)
@@ -193,6 +195,9 @@ def warm_up_kernels() -> None:
     v, idx, o = np.ones(4), np.array([0, 0, 1, 1], np.int64), np.empty(4)
     scan.segment_exclusive_cumsum(v, idx, o)
     scan.segment_reverse_exclusive_cumsum(v, idx, o)
+    box = np.array([[0.0] * 3, [1.0] * 3], np.float32)
+    boxes.ray_aabb(x, x, box, np.float32(0.0), t.copy(), t.copy(), np.empty(8, np.bool_))
+    sh.sh_encode(x, 4, np.empty((8, 25), np.float32))
 
 
 class Trainer:

@@ -298,3 +298,12 @@ def test_empty_distance_is_the_capped_chebyshev_distance_to_occupied_cells():
     assert np.array_equal(dist, np.minimum(full, 6)) and dist.max() == 6
     assert np.array_equal(empty_distance(np.zeros((4, 4, 4), np.uint8), cap=3), np.full((4,) * 3, 3))
     assert not empty_distance(np.ones((3, 3, 3), np.uint8)).any()
+
+
+def test_a_cache_baked_by_an_older_nerfbot_asks_to_be_baked_again():
+    from nerfbot.fields.fastnerf_cache import CachedField
+
+    field = CachedField(torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]))
+    with pytest.raises(ValueError, match="bake it again"):
+        field.load_state_dict({"values": torch.zeros(1, 5, 5, 5, 25, dtype=torch.int16)},
+                              strict=False)

@@ -103,6 +103,14 @@ class CachedField(Field):
         self.occupancy = occupancy.to(torch.uint8).contiguous()
         self.dir_weights = dir_weights.float().contiguous()
 
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        if prefix + "values" in state_dict:
+            raise ValueError(
+                "this FastNeRF cache was baked by an older nerfbot (one int16 table, 'values'; "
+                "now 16-bit densities and 8-bit colours): bake it again from its source run, "
+                "`nerfbot bake SOURCE_RUN --cache NP,ND --out DIR`")
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
     @property
     def empty(self) -> bool:
         return (self.bricks.shape[0] < 1 or self.density_codes.shape[0] == 0
