@@ -3,6 +3,7 @@ steps or seconds, atomic checkpoints and exact resume."""
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 import os
@@ -170,34 +171,26 @@ def build_from_spec(spec: dict, device="cpu") -> Model:
                        spec["seed"], Conditioning.from_dict(spec.get("conditioning"))).to(device)
 
 
-def warm_up_kernels() -> None:
-    """Compile (or load from cache) the numba kernels a training step calls, so compilation
-    never counts as training (on a fresh install, ``ray_aabb`` and ``sh_encode`` once compiled
-    ~2 s into a 30 s budget)."""
-    from nerfbot.kernels import boxes, hashgrid, marching, scan, sh
+#: Rays of the throwaway step that compiles a method's kernels before the training clock starts.
+WARM_UP_RAYS = 64
 
-    x = np.random.default_rng(0).random((8, 3), dtype=np.float32)
-    res, off = hashgrid.level_layout(2, 4, 2, 4)
-    table = np.zeros((off[-1], 2), np.float32)
-    out = np.empty((2, 8, 2), np.float32)
-    hashgrid.hash_forward(x, table, off, res, out, 1)
-    hashgrid.hash_backward(x, out, off, res, table, 1)
-    hashgrid.hash_backward_input(x, table, out, off, res, np.empty_like(x), 1)
-    occ = np.ones((2, 2, 2), np.uint8)
-    t = np.zeros(8, np.float32)
-    counts, stop = np.empty(8, np.int64), np.empty(8, np.float32)
-    args = (x, x, t, t + 1, occ, np.zeros(3), 0.5, 0.1, 0.1, 0.0, 4)
-    marching.march_count(*args, counts, stop)
-    starts = np.cumsum(counts) - counts
-    m = int(counts.sum())
-    marching.march_fill(*args, starts, np.empty(m, np.int64), np.empty(m, np.float32),
-                        np.empty(m, np.float32))
-    v, idx, o = np.ones(4), np.array([0, 0, 1, 1], np.int64), np.empty(4)
-    scan.segment_exclusive_cumsum(v, idx, o)
-    scan.segment_reverse_exclusive_cumsum(v, idx, o)
-    box = np.array([[0.0] * 3, [1.0] * 3], np.float32)
-    boxes.ray_aabb(x, x, box, np.float32(0.0), t.copy(), t.copy(), np.empty(8, np.bool_))
-    sh.sh_encode(x, 4, np.empty((8, 25), np.float32))
+
+def warm_up_step(model: Model, bank: "PixelBank", step: int, progress: float) -> None:
+    """One training step's forward and backward pass on a throwaway copy of ``model``, on
+    :data:`WARM_UP_RAYS` rays drawn with a private generator.
+
+    It compiles (or loads from numba's cache) every kernel a step of this method calls and
+    builds torch's first-call state, so none of it counts as training time: on a fresh install,
+    kernels once compiled several seconds into a 30 s budget. The model, its optimiser and the
+    run's random state are untouched, so runs stay deterministic for a seed.
+    """
+    twin = copy.deepcopy(model)
+    generator = torch.Generator().manual_seed(0)
+    twin.before_step(step, generator, progress)
+    rays, target, slot = bank.sample(WARM_UP_RAYS, generator)
+    cond = None if bank.conds is None else bank.conds[slot]
+    loss, _ = twin.loss(rays, target, generator, cond)
+    loss.backward()
 
 
 class Trainer:
@@ -321,7 +314,7 @@ class Trainer:
         """Run until a budget is spent. ``on_step(trainer)`` is called after every step (tests
         use it to simulate interruptions). On KeyboardInterrupt a checkpoint is written first."""
         c = self.config
-        warm_up_kernels()
+        warm_up_step(self.model, self.bank, self.step, self.progress())
         write_json_atomic(self.out / "config.json", {"train": asdict(c),
                                                      "data": str(self.dataset.root),
                                                      "spec": self.spec}, allow_nan=True)

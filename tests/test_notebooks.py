@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from pathlib import Path
 
 import numpy as np
@@ -64,11 +63,10 @@ def _execute(path: Path, work: Path):
             mp.setenv(key, value)
         mp.setenv("NERFBOT_NB_OUT", str(out))
         mp.setenv("MPLBACKEND", "module://matplotlib_inline.backend_inline")
-        # One compute thread unless told otherwise: with the CPU shared (other tests, benchmarks)
-        # two spinning OpenMP threads on one free core made each step ~4x slower here.
-        for key in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS"):
-            if key not in os.environ:
-                mp.setenv(key, "1")
+        # The kernel uses every core, as pytest (waiting for it) does not compute meanwhile:
+        # 2 threads ran the four notebooks in 347 s against 440 s with 1. With the CPU shared
+        # (a benchmark alongside), set OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1: two spinning
+        # OpenMP threads on one free core made each step ~4x slower here.
         client = nbclient.NotebookClient(nb, timeout=CELL_TIMEOUT_S, kernel_name="python3",
                                          resources={"metadata": {"path": str(work)}})
         client.execute()  # raises CellExecutionError (with the cell and traceback) on failure

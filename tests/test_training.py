@@ -145,6 +145,25 @@ def test_budget_is_required_and_options_are_checked(tiny_capture, tmp_path):
         Trainer(ds, tmp_path / "z", TrainConfig(method="nope", max_steps=1))
 
 
+@pytest.mark.parametrize("method", ["ngp", "plenoxels"])
+def test_warm_up_step_leaves_the_model_and_the_run_alone(tiny_capture, tmp_path, method):
+    """The step that compiles kernels before the clock starts runs on a copy: parameters,
+    gradients, the occupancy state and the run's random stream are as they were."""
+    from nerfbot.training import warm_up_step
+
+    ds = load_dataset(tiny_capture[0])
+    trainer = Trainer(ds, tmp_path / "run", TrainConfig(method=method, max_steps=1, progress=False))
+    state = {k: v.clone() for k, v in trainer.model.state_dict().items()}
+    rng = trainer.generator.get_state().clone()
+    warm_up_step(trainer.model, trainer.bank, 0, 0.0)
+    after = trainer.model.state_dict()
+    assert state.keys() == after.keys()
+    for k, v in state.items():
+        assert torch.equal(v, after[k]), k
+    assert all(p.grad is None for p in trainer.model.parameters())
+    assert torch.equal(rng, trainer.generator.get_state())
+
+
 def test_untrained_model_starts_at_the_mean_colour(tiny_capture, tmp_path):
     """Colour heads and the learned background start at the training images' mean colour, so the
     first gradients are zero-mean across pixels (from grey they all push one way)."""
