@@ -611,6 +611,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    from nerfbot.runtime import keep_freed_memory
+
+    keep_freed_memory()  # first, before anything allocates large blocks
     import sims  # noqa: F401  (sets MUJOCO_GL before anything imports mujoco)
 
     args = build_parser().parse_args(argv)
