@@ -181,6 +181,9 @@ def _chamfer(model, ds, settings: dict, seed: int) -> dict:
 
 def run_point(point: dict, run_dir: Path) -> dict:
     """Train, evaluate and (optionally) mesh one point in this process; returns its result."""
+    from nerfbot.runtime import keep_freed_memory
+
+    keep_freed_memory()  # first: a point runs in a subprocess or Ray worker, not via the CLI
     import sims  # noqa: F401  (MUJOCO_GL before mujoco)
     import torch
 
@@ -189,10 +192,8 @@ def run_point(point: dict, run_dir: Path) -> dict:
     from nerfbot.evaluation import evaluate
     from nerfbot.methods import get_method, option_names
     from nerfbot.models import num_params
-    from nerfbot.runtime import keep_freed_memory
     from nerfbot.training import CHECKPOINT, TrainConfig, Trainer
 
-    keep_freed_memory()  # a Ray worker did not start through the CLI
     t_start = time.perf_counter()
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -297,9 +298,6 @@ def run_point_elsewhere(point: dict, run_root: str) -> dict:
 
 
 if __name__ == "__main__":
-    from nerfbot.runtime import keep_freed_memory
-
-    keep_freed_memory()
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     if len(sys.argv) != 2:
         sys.exit("usage: python -m nerfbot.bench_point RUN_DIR (holding point.json)")

@@ -6,8 +6,6 @@ import platform
 import subprocess
 import sys
 
-import pytest
-
 # Holds an 80 MB tensor and prints the bytes glibc serves by mmap (mallinfo2().hblkhd).
 PROBE = """
 import ctypes, sys
@@ -34,8 +32,12 @@ def _mmapped_bytes(mode: str) -> int:
     return int(done.stdout.strip())
 
 
-@pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="mallopt is glibc's")
 def test_keep_freed_memory_serves_large_blocks_from_the_heap():
+    from nerfbot.runtime import keep_freed_memory
+
+    if platform.libc_ver()[0] != "glibc":  # no mallopt: the call must change nothing, say so
+        assert keep_freed_memory() is False
+        return
     assert _mmapped_bytes("default") >= BLOCK  # glibc's default: one fresh mapping per block
     assert _mmapped_bytes("keep") < BLOCK // 8
 
