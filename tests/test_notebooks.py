@@ -1,8 +1,8 @@
 """The tutorial notebooks run end to end (real MuJoCo capture, real training) and give sane numbers.
 
 The notebook is executed once per module with nbclient, at a tiny budget set through its
-environment variables (32x32 images, 12 train + 4 test views, 60 training steps), in a temporary
-working folder. Its last code cell writes the key numbers to ``results.json`` in
+environment variables (32x32 images, 12 train + 4 test views, 60 training steps of 2^15
+samples), in a temporary working folder. Its last code cell writes the key numbers to ``results.json`` in
 ``NERFBOT_NB_OUT``; the tests below check them.
 
 Training uses a *step* budget (``NERFBOT_NB_STEPS``), not the tutorial's wall-clock budget: a
@@ -30,21 +30,25 @@ ARTICULATED = NOTEBOOKS / "03_articulated.ipynb"
 VARIANTS = NOTEBOOKS / "04_variants.ipynb"
 
 STEPS = 60
+SAMPLES = 1 << 15  # per training step; the tutorials' default (2^17) is the whole 32x32 capture
 TINY = {"NERFBOT_NB_SIZE": "32", "NERFBOT_NB_VIEWS": "12", "NERFBOT_NB_TEST_VIEWS": "4",
-        "NERFBOT_NB_STEPS": str(STEPS), "NERFBOT_NB_SECONDS": "240"}
+        "NERFBOT_NB_STEPS": str(STEPS), "NERFBOT_NB_SAMPLES": str(SAMPLES),
+        "NERFBOT_NB_SECONDS": "240"}
 CELL_TIMEOUT_S = 300
 
-# Test PSNR after 60 steps at 32x32, 12 views (seed 0): observed 22.82 dB, bit-identical over
-# repeated runs, and 22.84 dB after a change of the ray-batch sizing (the curve was 13.3, 16.7, 21.8, 22.8 dB at steps 8, 15, 30, 60; an untrained
-# field scores ~10.5 dB). 19 dB leaves ~4 dB for platform differences in float arithmetic
-# (thread counts, BLAS, CPU) while still failing a broken pipeline: wrong poses, broken
-# rendering, or a field that learnt little (the same run is below 17 dB at step 15).
+# Test PSNR after 60 steps of 2^15 samples at 32x32, 12 views (seed 0): observed 23.98 dB (the
+# curve: 19.7, 20.1, 22.5, 24.0 dB at steps 8, 15, 30, 60; an untrained field scores ~10.5 dB).
+# With 2^17 samples per step, the whole capture, it was 22.82 dB at 4x the cost. 19 dB leaves
+# ~5 dB for platform differences in float arithmetic (thread counts, BLAS, CPU) while still
+# failing a broken pipeline: wrong poses, broken rendering, or a field that learnt little.
 MIN_PSNR_DB = 19.0
-# The queried pixel's z-depth against MuJoCo's depth buffer at the same pose: observed 3.589 m
-# vs 3.562 m (+24 to +27 mm; test-view depth MAE 73-74 mm). A field that put the surface at the far side
-# of the bounds or in the sky would be off by > 0.5 m (the table top alone is 1.2 m x 0.8 m).
+# The queried pixel's z-depth against MuJoCo's depth buffer at the same pose: observed 3.545 m
+# vs 3.562 m (-17 mm; +24 to +27 mm with 2^17 samples per step). A field that put the surface at
+# the far side of the bounds or in the sky would be off by > 0.5 m (the table top alone is
+# 1.2 m x 0.8 m).
 MAX_CENTRE_DEPTH_ERROR_M = 0.15
-# Accumulated opacity of that ray: observed 0.63 (0.43 with a 30-step budget, 0.31 after 4 steps).
+# Accumulated opacity of that ray: observed 0.78 (0.63 with 2^17 samples per step; 0.43 with a
+# 30-step budget, 0.31 after 4 steps).
 MIN_CENTRE_OPACITY = 0.45
 
 
@@ -194,10 +198,11 @@ def test_articulated_tutorial_renders_held_out_configurations_and_estimates_join
     assert len(_figures(nb)) >= 2  # held-out comparison, door sweep
     assert results["parts"] == [["door_hinge"], ["drawer_slide"]]
     psnr = results["psnr"]
-    # observed at the tiny budget (60 steps, 32x32, 16 frames): articulated 19.5 dB, ngp 18.0 dB,
-    # door error 0.3 degrees, drawer 0.5 mm. The margins allow for platform arithmetic; an
-    # untrained field is near 11 dB and a joint estimate from a broken field is off by tens of
-    # degrees (the door spans 110).
+    # observed at the tiny budget (60 steps of 2^15 samples, 32x32, 16 frames): articulated
+    # 18.8 dB, ngp 17.6 dB, door error 0.3 degrees, drawer 22 mm (19.5 / 18.0 dB, 0.3 degrees and
+    # 0.5 mm with 2^17 samples per step, at 4x the cost). The margins allow for platform
+    # arithmetic; an untrained field is near 11 dB and a joint estimate from a broken field is off
+    # by tens of degrees (the door spans 110).
     assert psnr["articulated"] > 17.0 and math.isfinite(psnr["ngp"])
     assert results["joint_errors"]["door_hinge"] < 15.0
     assert results["joint_errors"]["drawer_slide"] < 60.0
