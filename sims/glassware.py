@@ -13,7 +13,8 @@ The MJCF declares them in ``<custom><text name="nerfbot_objects">`` (glass first
 default capture rig (a hemisphere at 1.3 m around the table centre, 40 degree fov).
 
 Use as a scene name: ``glassware`` (seed 0) or ``glassware:K`` (seed K); see
-:func:`sims.scene.resolve_scene`.
+:func:`sims.scene.resolve_scene`. ``glazed`` / ``glazed:K`` is the same scene without the glass:
+specular but nothing transparent, a control for choices that depend on the materials.
 """
 
 from __future__ import annotations
@@ -151,17 +152,27 @@ def placements(seed: int, names: list[str]) -> dict[str, tuple[float, float, flo
     return out
 
 
+def glazed_xml(seed: int = 0) -> str:
+    """The MJCF text of glazed scene ``seed``: glassware scene ``seed`` without the glass."""
+    return glassware_xml(seed, with_glass=False)
+
+
 def object_names() -> tuple[list[str], list[str]]:
     """(glass object names, opaque control names), in vessel order."""
     shapes = [v.name for v in vessels()]
     return [f"glass_{s}" for s in shapes], [f"opaque_{s}" for s in shapes]
 
 
-def glassware_xml(seed: int = 0) -> str:
-    """The MJCF text of glassware scene ``seed`` (self-contained: meshes are inline)."""
+def glassware_xml(seed: int = 0, with_glass: bool = True) -> str:
+    """The MJCF text of glassware scene ``seed`` (self-contained: meshes are inline).
+
+    ``with_glass=False`` leaves the glass out: the opaque look-alikes alone, where they stand in
+    the full scene (the ``glazed`` family: shiny but nothing transparent)."""
     shapes = vessels()
     glass, opaque = object_names()
     where = placements(seed, glass + opaque)
+    if not with_glass:
+        glass = []
     meshes, bodies = [], []
     for vessel in shapes:
         mesh = vessel_mesh(vessel)
@@ -185,23 +196,32 @@ def glassware_xml(seed: int = 0) -> str:
     glazes = "\n".join(
         f'    <material name="glaze_{v.name}" rgba="{_OPAQUE_RGBA[v.name]}" specular="0.5" '
         f'shininess="0.6"/>' for v in shapes)
+    transparent = (f'    <text name="nerfbot_transparent_objects" data="{" ".join(glass)}"/>\n'
+                   if glass else "")
+    family, contents = ("glassware", _GLASS_CONTENTS) if glass else ("glazed", _GLAZED_CONTENTS)
     return _TEMPLATE.format(
-        seed=seed, objects=" ".join(glass + opaque), glass=" ".join(glass),
+        seed=seed, family=family, contents=contents.format(seed=seed), objects=" ".join(glass + opaque),
+        transparent=transparent,
         meshes="\n".join(meshes), glazes=glazes, bodies="\n".join(bodies),
         top=TABLE_TOP, half_x=TABLE_HALF[0], half_y=TABLE_HALF[1],
         top_centre=TABLE_TOP - 0.02, target_z=TABLE_TOP + 0.06)
 
 
-_TEMPLATE = """<!--
-  nerfbot generated scene "glassware", seed {seed} (sims/glassware.py; regenerate, do not edit).
-
-  Five transparent vessels (glass_*) and their opaque look-alikes (opaque_*) on a wooden table.
+_GLASS_CONTENTS = """Five transparent vessels (glass_*) and their opaque look-alikes (opaque_*) on a wooden table.
   Glass: alpha 0.18, strong specular highlights from four fixed lights; MuJoCo draws the glass
-  into the depth and segmentation buffers, so the capture's ground-truth depth sees it as opaque.
+  into the depth and segmentation buffers, so the capture's ground-truth depth sees it as opaque."""
+_GLAZED_CONTENTS = """The five opaque, glazed look-alikes (opaque_*) of glassware scene {seed} on a wooden table, where
+  they stand in that scene, without the glass: shiny surfaces (four fixed lights), nothing
+  transparent."""
+
+_TEMPLATE = """<!--
+  nerfbot generated scene "{family}", seed {seed} (sims/glassware.py; regenerate, do not edit).
+
+  {contents}
   Units are metres, z up; the table top is at z = {top}. The table is a slab without legs (as in
   tabletop there is no floor), so the content bounds stay tight around what a field must model.
 -->
-<mujoco model="glassware">
+<mujoco model="{family}">
   <compiler angle="degree"/>
   <option timestep="0.002"/>
   <statistic extent="1.2" center="0 0 {top}"/>
@@ -219,8 +239,7 @@ _TEMPLATE = """<!--
     <numeric name="nerfbot_rig_radius" data="1.3"/>
     <numeric name="nerfbot_rig_fovy" data="40"/>
     <text name="nerfbot_objects" data="{objects}"/>
-    <text name="nerfbot_transparent_objects" data="{glass}"/>
-  </custom>
+{transparent}  </custom>
 
   <default>
     <default class="object">

@@ -1,5 +1,5 @@
 """Find and load MuJoCo scenes: built-in names (``tabletop``), generated scene families
-(``glassware`` or ``glassware:SEED``) or paths to any MJCF file."""
+(``glassware`` or ``glassware:SEED``, ``glazed[:SEED]``) or paths to any MJCF file."""
 
 from __future__ import annotations
 
@@ -15,9 +15,9 @@ CAPTURE_CAMERA = "nerfbot_capture"
 
 
 def _generators() -> dict[str, Callable[[int], str]]:
-    from sims.glassware import glassware_xml
+    from sims.glassware import glassware_xml, glazed_xml
 
-    return {"glassware": glassware_xml}
+    return {"glassware": glassware_xml, "glazed": glazed_xml}
 
 
 def builtin_scenes() -> list[str]:

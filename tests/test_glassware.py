@@ -50,6 +50,31 @@ def test_placement_is_seeded_and_objects_do_not_overlap(tmp_path, monkeypatch):
     assert np.abs(xy_after - xy).max() < 1e-3
 
 
+def test_glazed_scene_is_the_glassware_scene_without_the_glass(tmp_path, monkeypatch):
+    import mujoco
+
+    from nerfbot.auto import choose_from_manifest
+    from sims.manifest import scene_manifest
+
+    monkeypatch.setenv("NERFBOT_CACHE", str(tmp_path))
+    glass, opaque = object_names()
+    full, glazed = load_model("glassware:3"), load_model("glazed:3")
+    d_full, d_glazed = mujoco.MjData(full), mujoco.MjData(glazed)
+    mujoco.mj_forward(full, d_full)
+    mujoco.mj_forward(glazed, d_glazed)
+    for name in opaque:                           # the look-alikes stand where they stood
+        assert np.allclose(d_glazed.body(name).xpos, d_full.body(name).xpos)
+    for name in glass:
+        assert mujoco.mj_name2id(glazed, mujoco.mjtObj.mjOBJ_BODY, name) == -1
+    manifest = scene_manifest(glazed, d_glazed, "glazed:3", str(resolve_scene("glazed:3")))
+    assert manifest["transparent_geoms"] == [] and manifest["specular"]
+    assert sorted(manifest["objects"]) == sorted(opaque)
+    choice = choose_from_manifest(manifest)
+    assert choice.method == "ngp" and choice.options.get("sh_degree") is None
+    full_manifest = scene_manifest(full, d_full, "glassware:3", str(resolve_scene("glassware:3")))
+    assert sorted(full_manifest["transparent_geoms"]) == sorted(glass)
+
+
 def test_sensor_model_noise_grows_with_depth_and_glass_modes():
     rng = np.random.default_rng(0)
     near = np.full((64, 64), 0.5)
