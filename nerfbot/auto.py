@@ -7,7 +7,9 @@ Two decisions, each explained in :attr:`AutoChoice.reasons`:
    - conditioning: a static capture gets none; time-varying captures need a time-conditioned
      field, captures with moving joints a joint-conditioned one (methods of those kinds are
      chosen when the registry has them, otherwise a clear error says what is missing);
-   - no specular material → view-independent colour (spherical-harmonics degree 0);
+   - no specular material, or shiny surfaces on under :data:`MIN_SHINY_PIXEL_FRACTION` of the
+     training pixels and no glass → view-independent colour (spherical-harmonics degree 0):
+     modelling view dependence costs more steps than it returns when little of the image has it;
    - transparent geoms → keep low-density structure (a 10x lower occupancy threshold, so faint
      glass is never pruned), the distortion loss against floaters, and threshold depth as the
      run's default depth query (Dex-NeRF);
@@ -33,6 +35,12 @@ log = logging.getLogger(__name__)
 TRANSPARENT_GRID_THRESHOLD = 0.001
 #: Distortion-loss weight for scenes with transparent geoms (fewer floaters at low thresholds).
 TRANSPARENT_DISTORTION = 0.01
+#: Share of the training pixels on shiny surfaces (manifest ``shiny_pixel_fraction``) below
+#: which a scene without glass gets view-independent colour. Measured at 120 and 240 steps
+#: (BENCHMARKS.md, issue 4): on the tabletop (2.4 % shiny pixels) SH degree 0 led degree 4 by
+#: 0.2-0.35 dB; on the glazed scene (5.5 %) it trailed by 1.3-2.2 dB. A two-scene estimate, set
+#: nearer the tabletop because guessing wrong costs more on the shiny side.
+MIN_SHINY_PIXEL_FRACTION = 0.03
 #: Budgets (training seconds) of the built-in sweep when no bench table is given.
 BUILTIN_SWEEP_SECONDS = (30.0, 60.0, 120.0)
 
@@ -96,12 +104,21 @@ def choose_from_manifest(manifest: Optional[dict]) -> AutoChoice:
                               "manifest says the scene changes across frames")
     else:
         choice.reasons.append("static field (ngp): no time variation or moving joints")
+    transparent = manifest.get("transparent_geoms") or []
+    shiny = manifest.get("shiny_pixel_fraction")
     if not manifest.get("specular", True):
         choice.options["sh_degree"] = 0
         choice.reasons.append("view-independent colour (SH degree 0): no specular material")
+    elif not transparent and shiny is not None and shiny < MIN_SHINY_PIXEL_FRACTION:
+        choice.options["sh_degree"] = 0
+        choice.reasons.append(
+            f"view-independent colour (SH degree 0): shiny surfaces cover {100 * shiny:.1f} % of "
+            f"the training pixels (< {100 * MIN_SHINY_PIXEL_FRACTION:g} %) and nothing is "
+            "transparent, so view dependence costs more steps than it returns")
     else:
-        choice.reasons.append("view-dependent colour (SH degree 4): specular materials present")
-    transparent = manifest.get("transparent_geoms") or []
+        share = "" if shiny is None else f" on {100 * shiny:.1f} % of the training pixels"
+        choice.reasons.append("view-dependent colour (SH degree 4): specular materials "
+                              f"present{share}" + (" and glass" if transparent else ""))
     if transparent:
         choice.options["grid_threshold"] = TRANSPARENT_GRID_THRESHOLD
         choice.options["distortion_weight"] = TRANSPARENT_DISTORTION

@@ -122,7 +122,8 @@ def write_views(model: mujoco.MjModel, data: mujoco.MjData, views: Sequence[View
         views: the frames, in the order they are written.
         width, height, fov_deg: image size (pixels) and vertical field of view (degrees).
         meta: the scene manifest (written as ``scene`` unless ``manifest`` is False; its
-            ``transparent_geoms`` decide what the depth sensor sees through).
+            ``transparent_geoms`` decide what the depth sensor sees through). The share of the
+            training pixels that show its ``shiny_geoms`` is added as ``shiny_pixel_fraction``.
         fmt, progress, sensor: as :func:`capture`.
         extra_files: called with the (temporary) dataset folder before it is moved into place,
             to add files of its own.
@@ -136,6 +137,9 @@ def write_views(model: mujoco.MjModel, data: mujoco.MjData, views: Sequence[View
         raise ValueError("nothing to capture: no views")
     transparent_ids = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, name)
                        for name in meta["transparent_geoms"]]
+    shiny_ids = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, name)
+                 for name in meta.get("shiny_geoms", ())]
+    shiny_px = train_px = 0
     if sensor is not None:
         meta["depth_sensor"] = sensor.to_dict()
 
@@ -162,6 +166,11 @@ def write_views(model: mujoco.MjModel, data: mujoco.MjData, views: Sequence[View
                 writer.add_frame(frame.rgb, frame.c2w, view.split, depth=frame.depth,
                                  segmentation=frame.segmentation, time=view.time,
                                  joints=view.joints, sensor_depth=sensor_depth)
+                if view.split == "train":
+                    train_px += frame.segmentation.size
+                    shiny_px += int(np.isin(frame.segmentation, shiny_ids).sum())
+        if train_px:
+            meta["shiny_pixel_fraction"] = shiny_px / train_px
         writer.finish(meta if manifest else None)
         if extra_files is not None:
             extra_files(tmp)

@@ -9,6 +9,10 @@ top-level ``scene``):
 - ``moving_joints``: names of joints that move across frames ([] for static captures).
 - ``time_varying``: whether the scene changes with time (false for static captures).
 - ``specular``: whether any rendered geom is shiny (material specular > 0.3 or reflectance > 0).
+- ``shiny_geoms``: names of rendered geoms whose look changes strongly with the viewpoint
+  (material specular or reflectance above 0.3: bright highlights or clear mirror images).
+- ``shiny_pixel_fraction``: share of the training images' pixels that show ``shiny_geoms``
+  (added by the capture, which sees the segmentation; absent from manifests of other origins).
 - ``geoms``: {geom id (as a string): name} for reading segmentation images; unnamed geoms are
   called ``geom_<id>``.
 
@@ -28,6 +32,9 @@ from sims.camera import capture_scene_option
 
 #: Material specular above which a geom counts as shiny.
 SPECULAR_THRESHOLD = 0.3
+#: Material reflectance above which a geom's mirror images count as a strong view dependence
+#: (weak reflectance, e.g. 0.06 on the tabletop's wood, only makes the ``specular`` flag true).
+SHINY_REFLECTANCE = 0.3
 
 # Sign patterns of the 8 corners of a box.
 _CORNERS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)],
@@ -88,6 +95,8 @@ def scene_manifest(model: mujoco.MjModel, data: mujoco.MjData, name: str, source
     bounds = content_bounds(model, data, ids)
     transparent = sorted({int(g.objid) for g in drawn if g.rgba[3] < 1.0})
     specular = any(g.specular > SPECULAR_THRESHOLD or g.reflectance > 0.0 for g in drawn)
+    shiny = sorted({int(g.objid) for g in drawn
+                    if g.specular > SPECULAR_THRESHOLD or g.reflectance > SHINY_REFLECTANCE})
     return {
         "name": str(name),
         "source": str(source),
@@ -96,6 +105,7 @@ def scene_manifest(model: mujoco.MjModel, data: mujoco.MjData, name: str, source
         "moving_joints": [str(j) for j in moving_joints],
         "time_varying": bool(time_varying),
         "specular": bool(specular),
+        "shiny_geoms": [geom_name(model, g) for g in shiny],
         "geoms": {str(g): geom_name(model, g) for g in range(model.ngeom)},
         "objects": declared_objects(model),
     }

@@ -8,6 +8,7 @@ import pytest
 
 from nerfbot.auto import (TRANSPARENT_GRID_THRESHOLD, auto_train_config, bench_rows,
                           choose_budget, choose_from_manifest)
+from nerfbot.data import load_dataset
 
 
 def _manifest(**kw):
@@ -27,6 +28,20 @@ def test_matte_scene_gets_view_independent_colour():
     c = choose_from_manifest(_manifest(specular=False))
     assert c.options["sh_degree"] == 0
     assert any("SH degree 0" in r for r in c.reasons)
+
+
+def test_few_shiny_pixels_without_glass_get_view_independent_colour():
+    few = choose_from_manifest(_manifest(shiny_pixel_fraction=0.02))
+    assert few.options["sh_degree"] == 0
+    assert any("2.0 % of the training pixels" in r for r in few.reasons)
+    many = choose_from_manifest(_manifest(shiny_pixel_fraction=0.05))
+    assert "sh_degree" not in many.options
+    assert any("SH degree 4" in r and "5.0 %" in r for r in many.reasons)
+    # glass keeps view dependence however little of the image it covers; so does a manifest
+    # that does not say how much is shiny (not written by a capture)
+    glass = choose_from_manifest(_manifest(shiny_pixel_fraction=0.01, transparent_geoms=["g"]))
+    assert "sh_degree" not in glass.options
+    assert "sh_degree" not in choose_from_manifest(_manifest()).options
 
 
 def test_glass_keeps_faint_density_and_defaults_to_threshold_depth():
@@ -90,7 +105,12 @@ def test_train_auto_on_a_capture_writes_its_reasons(tiny_capture, tmp_path):
                  "--out", str(run), "--no-progress"]) == 0
     auto = json.loads((run / "auto.json").read_text())
     assert auto["method"] == "ngp" and auto["conditioning"] == "static"
-    assert "sh_degree" not in auto["options"]                 # the tabletop is specular
+    # the tabletop is specular, but its shiny surfaces (metal legs, chrome sphere, glazed can,
+    # gem) are a small share of the image
+    manifest = load_dataset(tiny_capture[0]).manifest
+    assert manifest["specular"] and 0.0 < manifest["shiny_pixel_fraction"] < 0.03
+    assert auto["options"] == {"sh_degree": 0}
+    assert any("shiny surfaces cover" in r for r in auto["reasons"])
     cfg = json.loads((run / "config.json").read_text())
     assert cfg["spec"]["method"] == "ngp"
     with pytest.raises(SystemExit, match="need --method auto"):

@@ -290,6 +290,18 @@ def test_manifest_bounds_contain_geoms_and_table(dataset, tabletop):
     assert scene["transparent_geoms"] == [] and scene["moving_joints"] == []
     assert scene["time_varying"] is False and scene["specular"] is True
     assert scene["geoms"][str(geom_id(model, "chrome_sphere"))] == "chrome_sphere"
+    # strongly view-dependent: the metal legs, chrome, glazed can and gem; not the table top,
+    # whose wood has a faint reflectance (0.06) and a low specular (0.25)
+    assert sorted(scene["shiny_geoms"]) == sorted(
+        ["table_leg_fl", "table_leg_fr", "table_leg_bl", "table_leg_br", "chrome_sphere",
+         "blue_can", "purple_gem"])
+    from nerfbot.data import load_dataset
+
+    ds = load_dataset(dataset[0])
+    shiny = [geom_id(model, n) for n in scene["shiny_geoms"]]
+    segs = [ds.segmentations[i] for i in ds.indices("train")]
+    share = sum(int(np.isin(s, shiny).sum()) for s in segs) / sum(s.size for s in segs)
+    assert share > 0 and scene["shiny_pixel_fraction"] == pytest.approx(share, abs=1e-12)
 
 
 def test_manifest_transparency_groups_and_planes(tmp_path):
@@ -308,7 +320,7 @@ def test_manifest_transparency_groups_and_planes(tmp_path):
     model, data = load_capture_model(path)
     m = scene_manifest(model, data, "glass", str(path))
     assert m["transparent_geoms"] == ["cup", "tint"]
-    assert m["specular"] is False
+    assert m["specular"] is False and m["shiny_geoms"] == []
     lo, hi = np.array(m["bounds"])
     assert np.allclose(lo[0], -1.1) and np.allclose(hi[0], 0.55)  # no plane, no hidden geoms
     assert lo[2] == pytest.approx(0.0) and hi[2] == pytest.approx(0.6)
