@@ -380,7 +380,8 @@ def test_auto_is_a_bench_method_compared_with_the_best_other_configuration(tiny_
     best = max(rows[1:], key=lambda r: r["psnr"])
     assert auto["psnr_gap_to_best"] == pytest.approx(best["psnr"] - auto["psnr"])
     assert auto["best_train_seconds"] == best["train_seconds"]
-    assert "sh_degree" not in json.loads(auto["options"])  # the tabletop has specular materials
+    # the tabletop is specular, but its shiny surfaces are a small share of the pixels
+    assert json.loads(auto["options"])["sh_degree"] == 0
     assert "behind the best other configuration" in (out / "bench.md").read_text()
 
 
