@@ -200,18 +200,21 @@ def glassware_xml(seed: int = 0, with_glass: bool = True) -> str:
                    if glass else "")
     family, contents = ("glassware", _GLASS_CONTENTS) if glass else ("glazed", _GLAZED_CONTENTS)
     return _TEMPLATE.format(
-        seed=seed, family=family, contents=contents.format(seed=seed), objects=" ".join(glass + opaque),
-        transparent=transparent,
-        meshes="\n".join(meshes), glazes=glazes, bodies="\n".join(bodies),
+        seed=seed, family=family, contents=contents.format(seed=seed),
+        objects=" ".join(glass + opaque), transparent=transparent, meshes="\n".join(meshes),
+        glazes=glazes, bodies="\n".join(bodies),
         top=TABLE_TOP, half_x=TABLE_HALF[0], half_y=TABLE_HALF[1],
         top_centre=TABLE_TOP - 0.02, target_z=TABLE_TOP + 0.06)
 
 
-_GLASS_CONTENTS = """Five transparent vessels (glass_*) and their opaque look-alikes (opaque_*) on a wooden table.
-  Glass: alpha 0.18, strong specular highlights from four fixed lights; MuJoCo draws the glass
-  into the depth and segmentation buffers, so the capture's ground-truth depth sees it as opaque."""
-_GLAZED_CONTENTS = """The five opaque, glazed look-alikes (opaque_*) of glassware scene {seed} on a wooden table, where
-  they stand in that scene, without the glass: shiny surfaces (four fixed lights), nothing
+_GLASS_CONTENTS = """\
+Five transparent vessels (glass_*) and their opaque look-alikes (opaque_*) on a wooden
+  table. Glass: alpha 0.18, strong specular highlights from four fixed lights; MuJoCo draws the
+  glass into the depth and segmentation buffers, so the capture's ground-truth depth sees it as
+  opaque."""
+_GLAZED_CONTENTS = """\
+The five opaque, glazed look-alikes (opaque_*) of glassware scene {seed} on a wooden table,
+  where they stand in that scene, without the glass: shiny surfaces (four fixed lights), nothing
   transparent."""
 
 _TEMPLATE = """<!--
