@@ -69,6 +69,7 @@ def test_glazed_scene_is_the_glassware_scene_without_the_glass(tmp_path, monkeyp
     manifest = scene_manifest(glazed, d_glazed, "glazed:3", str(resolve_scene("glazed:3")))
     assert manifest["transparent_geoms"] == [] and manifest["specular"]
     assert sorted(manifest["objects"]) == sorted(opaque)
+    assert sorted(manifest["shiny_geoms"]) == sorted(opaque)      # glazed: specular 0.5
     choice = choose_from_manifest(manifest)
     assert choice.method == "ngp" and choice.options.get("sh_degree") is None
     full_manifest = scene_manifest(full, d_full, "glassware:3", str(resolve_scene("glassware:3")))

@@ -2,8 +2,8 @@
 
 The notebook is executed once per module with nbclient, at a tiny budget set through its
 environment variables (32x32 images, 12 train + 4 test views, 60 training steps of 2^15
-samples), in a temporary working folder. Its last code cell writes the key numbers to ``results.json`` in
-``NERFBOT_NB_OUT``; the tests below check them.
+samples), in a temporary working folder. Its last code cell writes the key numbers to
+``results.json`` in ``NERFBOT_NB_OUT``; the tests below check them.
 
 Training uses a *step* budget (``NERFBOT_NB_STEPS``), not the tutorial's wall-clock budget: a
 time budget makes the quality depend on the machine's speed and load (on a shared 2-core
@@ -38,7 +38,7 @@ CELL_TIMEOUT_S = 300
 
 # Test PSNR after 60 steps of 2^15 samples at 32x32, 12 views (seed 0): observed 23.98 dB (the
 # curve: 19.7, 20.1, 22.5, 24.0 dB at steps 8, 15, 30, 60; an untrained field scores ~10.5 dB).
-# With 2^17 samples per step, the whole capture, it was 22.82 dB at 4x the cost. 19 dB leaves
+# With 2^17 samples per step, the whole capture, it was 22.82 dB (4x the samples). 19 dB leaves
 # ~5 dB for platform differences in float arithmetic (thread counts, BLAS, CPU) while still
 # failing a broken pipeline: wrong poses, broken rendering, or a field that learnt little.
 MIN_PSNR_DB = 19.0
@@ -200,7 +200,7 @@ def test_articulated_tutorial_renders_held_out_configurations_and_estimates_join
     psnr = results["psnr"]
     # observed at the tiny budget (60 steps of 2^15 samples, 32x32, 16 frames): articulated
     # 18.8 dB, ngp 17.6 dB, door error 0.3 degrees, drawer 22 mm (19.5 / 18.0 dB, 0.3 degrees and
-    # 0.5 mm with 2^17 samples per step, at 4x the cost). The margins allow for platform
+    # 0.5 mm with 2^17 samples per step). The margins allow for platform
     # arithmetic; an untrained field is near 11 dB and a joint estimate from a broken field is off
     # by tens of degrees (the door spans 110).
     assert psnr["articulated"] > 17.0 and math.isfinite(psnr["ngp"])
