@@ -36,10 +36,11 @@ TRANSPARENT_GRID_THRESHOLD = 0.001
 #: Distortion-loss weight for scenes with transparent geoms (fewer floaters at low thresholds).
 TRANSPARENT_DISTORTION = 0.01
 #: Share of the training pixels on shiny surfaces (manifest ``shiny_pixel_fraction``) below
-#: which a scene without glass gets view-independent colour. Measured at 120 and 240 steps
+#: which a scene without glass gets view-independent colour. Measured with step budgets
 #: (BENCHMARKS.md, issue 4): on the tabletop (2.4 % shiny pixels) SH degree 0 led degree 4 by
-#: 0.2-0.35 dB; on the glazed scene (5.5 %) it trailed by 1.3-2.2 dB. A two-scene estimate, set
-#: nearer the tabletop because guessing wrong costs more on the shiny side.
+#: 0.2-0.35 dB at 120-240 steps and trailed by 0.1 dB at 568; on the glazed scene (5.5 %) it
+#: trailed by 1.3-2.2 dB. A two-scene estimate, set nearer the tabletop because guessing wrong
+#: costs more on the shiny side.
 MIN_SHINY_PIXEL_FRACTION = 0.03
 #: Budgets (training seconds) of the built-in sweep when no bench table is given.
 BUILTIN_SWEEP_SECONDS = (30.0, 60.0, 120.0)
