@@ -162,16 +162,21 @@ class Cameras:
         return Cameras(*(getattr(self, f).to(device) for f in
                          ("c2w", "fx", "fy", "cx", "cy", "width", "height")))
 
-    def rays(self, index: int, downscale: int = 1) -> "Rays":
+    def rays(self, index: int, downscale: int = 1, supersample: int = 1) -> "Rays":
         """All rays of camera ``index`` in row-major pixel order, (H*W,) rays.
 
         ``downscale`` > 1 renders a smaller image of the same field of view (pixel centres of
-        the coarser grid).
+        the coarser grid). ``supersample`` S > 1 gives S x S rays per pixel instead, through the
+        centres of an S x S grid of cells in each pixel: (H*S * W*S,) rays, row-major over that
+        finer grid (``reshape(H, S, W, S)`` groups them by pixel).
         """
+        if supersample < 1:
+            raise ValueError(f"supersample must be >= 1, got {supersample}")
         w = int(self.width[index]) // downscale
         h = int(self.height[index]) // downscale
+        sx, sy = float(self.width[index]) / w, float(self.height[index]) / h
         dir_cam, z_per_t, radii = _image_rays_in_camera(
-            w, h, float(self.width[index]) / w, float(self.height[index]) / h,
+            w * supersample, h * supersample, sx / supersample, sy / supersample,
             *(float(getattr(self, k)[index]) for k in ("fx", "fy", "cx", "cy")))
         c2w = self.c2w[index]
         dev = c2w.device

@@ -36,6 +36,16 @@ def _parse_background(text: str | None):
     return parts
 
 
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
+
+
 def _floats(text: str) -> tuple[float, ...]:
     return tuple(float(v) for v in text.split(",") if v.strip())
 
@@ -152,7 +162,8 @@ def cmd_eval(args) -> int:
     if args.downscale < 1:
         raise ValueError(f"--downscale must be a positive integer, got {args.downscale}")
     model, info, data, ds = _run_and_dataset(args)
-    metrics = evaluate(model, ds, args.split, downscale=args.downscale)
+    metrics = evaluate(model, ds, args.split, downscale=args.downscale,
+                       supersample=args.supersample)
     metrics.update(method=info["spec"]["method"], num_params=num_params(model),
                    train_seconds=info["train_seconds"], steps=info["step"], split=args.split,
                    data=str(data))
@@ -302,7 +313,8 @@ def cmd_render(args) -> int:
     data = Path(args.data) if args.data else _run_data_path(run)
     cams, conds = _render_plan(args, model, info, data)
     out = Path(args.out)
-    images = (render_image(model, cams, i, cond=conds[i]) for i in range(len(cams)))
+    images = (render_image(model, cams, i, cond=conds[i], supersample=args.supersample)
+              for i in range(len(cams)))
     images = tqdm(images, total=len(cams), desc="render", disable=args.no_progress)
     if out.suffix.lower() in (".mp4", ".avi"):
         def frames():
@@ -463,6 +475,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--downscale", type=int, default=1, metavar="K",
                    help="evaluate at 1/K resolution: cameras scaled by 1/K, ground truth "
                         "area-averaged (the multiscale protocol; default 1)")
+    p.add_argument("--supersample", type=_positive_int, default=None, metavar="S",
+                   help="S x S rays per pixel for colour (default: what the run was trained with)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--depth-sweep", action="store_true",
                    help="also compare expected, median and threshold depth (and the simulated "
@@ -518,6 +532,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="what a video shows")
     p.add_argument("--frames", type=int, default=60, help="orbit frames")
     p.add_argument("--fps", type=float, default=24.0)
+    p.add_argument("--supersample", type=_positive_int, default=None, metavar="S",
+                   help="S x S rays per pixel for colour (default: what the run was trained "
+                        "with; 1 renders S^2 + 1 times fewer rays)")
     p.add_argument("--size", type=int, nargs="+", default=None, metavar="N",
                    help="orbit image size N or W H (default: the training size)")
     p.add_argument("--data", type=Path, default=None)

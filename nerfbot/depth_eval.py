@@ -129,7 +129,7 @@ def depth_mode_sweep(model: Model, dataset: Dataset, split: str = "test",
             continue
         used += 1
         gt = dataset.depths[i]
-        out = render_image(model, cams, slot, thresholds=thresholds)
+        out = render_image(model, cams, slot, thresholds=thresholds, supersample=1)
         sensor = dataset.sensor_depths[i] if dataset.sensor_depths else None
         for c, mask in classes.items():
             modes[c]["expected"].add(out["z_depth"], gt, mask)

@@ -101,7 +101,7 @@ class _DepthErrorSum:
 
 
 def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: int | None = None,
-             with_ssim: bool = True, downscale: int = 1) -> dict:
+             with_ssim: bool = True, downscale: int = 1, supersample: int | None = None) -> dict:
     """Render every frame of ``split`` and compare with the ground truth.
 
     Returns psnr / ssim (means over images); depth_mae_m / depth_rmse_m of the expected z-depth
@@ -112,7 +112,11 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
     psnr_objects: PSNR pooled over the pixels of those objects, their mask dilated by
     :data:`OBJECT_MASK_DILATION_PX` (in dynamic and articulated scenes the objects are what
     moves, a small part of each image; None without segmentation or objects);
-    render_ms_per_image (median over images); num_images; downscale.
+    render_ms_per_image (median over images); num_images; downscale; supersample.
+
+    Colour is rendered with ``supersample`` x ``supersample`` rays per pixel (None: the
+    model's own :attr:`~nerfbot.models.Model.supersample`), depth from the pixel centres
+    (:func:`~nerfbot.query.render_image`).
 
     ``downscale`` K > 1 evaluates at 1/K resolution (the multiscale protocol): the cameras are
     :meth:`~nerfbot.cameras.Cameras.scaled` by 1/K, the ground-truth images area-averaged
@@ -137,7 +141,7 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
     for slot, i in enumerate(indices):
         cond = None if conds is None else conds[i]
         t0 = time.perf_counter()
-        out = render_image(model, cams, slot, cond=cond)
+        out = render_image(model, cams, slot, cond=cond, supersample=supersample)
         times.append(time.perf_counter() - t0)
         h, w = out["rgb"].shape[:2]
         gt = downscale_area(dataset.image_float(i), w, h)
@@ -177,5 +181,6 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
         "render_ms_per_image": float(np.median(times) * 1e3) if times else None,
         "num_images": len(indices),
         "downscale": downscale,
+        "supersample": model.supersample if supersample is None else supersample,
     }
     return result

@@ -28,6 +28,17 @@ from nerfbot.rendering import RenderOutput, composite, render_weights
 from nerfbot.sampling import OccupancyGrid, pdf_samples, ray_aabb, stratified_samples
 
 
+def pixel_mean(values: torch.Tensor, rays_per_pixel: int) -> torch.Tensor:
+    """(P * K, ...) per-ray values, K = ``rays_per_pixel`` consecutive rays per pixel ->
+    (P, ...) their means per pixel (the input itself when K = 1)."""
+    if rays_per_pixel == 1:
+        return values
+    if values.shape[0] % rays_per_pixel:
+        raise ValueError(f"{values.shape[0]} rays are not a whole number of pixels of "
+                         f"{rays_per_pixel} rays")
+    return values.reshape(-1, rays_per_pixel, *values.shape[1:]).mean(1)
+
+
 class Model(nn.Module, metaclass=abc.ABCMeta):
     """Common surface of every model: render rays, compute the training loss, upkeep."""
 
@@ -40,12 +51,23 @@ class Model(nn.Module, metaclass=abc.ABCMeta):
                     cond: Optional[torch.Tensor] = None) -> RenderOutput:
         """Render (R,) rays; in eval mode without randomness."""
 
+    #: Rays per pixel axis when training and rendering colour: S x S rays through each pixel,
+    #: their colours averaged (see :func:`nerfbot.training.batch_loss`); 1: the pixel centre.
+    supersample: int = 1
+
+    def training_supersample(self, progress: float) -> int:
+        """Rays per pixel axis of the training batch at ``progress`` in [0, 1] of the budget."""
+        return self.supersample
+
     def loss(self, rays: Rays, target_rgb: torch.Tensor,
              generator: Optional[torch.Generator] = None,
-             cond: Optional[torch.Tensor] = None) -> tuple[torch.Tensor, RenderOutput]:
-        """Photometric MSE of the rendered rays against ``target_rgb`` (R, 3)."""
+             cond: Optional[torch.Tensor] = None,
+             rays_per_pixel: int = 1) -> tuple[torch.Tensor, RenderOutput]:
+        """Photometric MSE of the rendered rays against ``target_rgb`` (P, 3), P pixels; the
+        (P * rays_per_pixel,) rays come pixel after pixel and their colours are averaged per
+        pixel first."""
         out = self.render_rays(rays, generator, cond)
-        return F.mse_loss(out.rgb, target_rgb), out
+        return F.mse_loss(pixel_mean(out.rgb, rays_per_pixel), target_rgb), out
 
     def before_step(self, step: int, generator: Optional[torch.Generator] = None,
                     progress: float = 0.0) -> dict:
@@ -120,6 +142,18 @@ class OccupancyModelConfig:
     distances are measured in cube diagonals. 0.01 gained 0.2-0.6 dB test PSNR on the tabletop
     within 180 s and brought object depth from 2.97 to 2.80 cm (BENCHMARKS.md); 0 turns it
     off."""
+    supersample: int = 1
+    """S: rays per pixel axis for colour. Training compares the mean colour of S x S rays,
+    one through a random point of each cell of an S x S grid over the pixel, with the pixel's
+    colour; rendering averages S x S rays through the cells' centres (depth still comes from
+    the pixel centre). Rendered images are anti-aliased (a renderer's multisampling, a
+    camera's sensor): one central ray can match a pixel that an edge crosses only by making
+    the edge semi-transparent, and an object a few pixels wide then becomes a veil whose
+    depth lies behind it. Costs S^2 rays per training pixel and S^2 + 1 per rendered pixel."""
+    supersample_from: float = 0.0
+    """Fraction of the training budget before which training rays go through the pixel
+    centres, S x S per pixel after it. With a fixed number of samples per batch, S x S rays
+    per pixel mean S^2 times fewer pixels per step, which slows the early, coarse phase."""
 
 
 class OccupancyModel(Model):
@@ -129,12 +163,21 @@ class OccupancyModel(Model):
                  config: OccupancyModelConfig | None = None):
         super().__init__()
         self.config = cfg = config or OccupancyModelConfig()
+        if isinstance(cfg.supersample, bool) or not isinstance(cfg.supersample, int) \
+                or cfg.supersample < 1:
+            raise ValueError(f"supersample must be an integer >= 1, got {cfg.supersample!r}")
+        self.supersample = cfg.supersample
+        if not 0.0 <= cfg.supersample_from <= 1.0:
+            raise ValueError(f"supersample_from must be in [0, 1], got {cfg.supersample_from}")
         self.field = field
         self.background = background
         self.register_buffer("aabb", torch.as_tensor(aabb, dtype=torch.float32).clone())
         self.grid = OccupancyGrid(self.aabb, cfg.grid_resolution, cfg.grid_threshold)
         self.dt_min = self.grid.cube_size * math.sqrt(3.0) / cfg.render_steps
         self.dt_max = 8.0 * self.dt_min if cfg.cone_angle > 0 else self.dt_min
+
+    def training_supersample(self, progress: float) -> int:
+        return self.supersample if progress >= self.config.supersample_from else 1
 
     # -- sampling ----------------------------------------------------------------------------
     def _march(self, rays: Rays, t_begin, t_far, max_per_ray: int = 1 << 30):
@@ -204,9 +247,9 @@ class OccupancyModel(Model):
         return composite(sigma, rgb, ts, te, gidx, n, self.background(rays.directions), t_far,
                          rays.z_per_t)
 
-    def loss(self, rays, target_rgb, generator=None, cond=None):
+    def loss(self, rays, target_rgb, generator=None, cond=None, rays_per_pixel=1):
         out = self.render_rays(rays, generator, cond)
-        loss = F.mse_loss(out.rgb, target_rgb)
+        loss = F.mse_loss(pixel_mean(out.rgb, rays_per_pixel), target_rgb)
         if self.config.distortion_weight > 0:
             loss = loss + self.config.distortion_weight * distortion_loss(
                 out.weights, out.t_starts, out.t_ends, out.ray_indices, len(rays),
@@ -287,9 +330,10 @@ class HierarchicalModel(Model):
     def rays_for_next_batch(self, last_samples: Optional[int], n_rays: int) -> int:
         return self.config.rays_per_batch
 
-    def loss(self, rays, target_rgb, generator=None, cond=None):
+    def loss(self, rays, target_rgb, generator=None, cond=None, rays_per_pixel=1):
         coarse, fine = self._render_both(rays, generator, cond)
-        return F.mse_loss(coarse.rgb, target_rgb) + F.mse_loss(fine.rgb, target_rgb), fine
+        return (F.mse_loss(pixel_mean(coarse.rgb, rays_per_pixel), target_rgb)
+                + F.mse_loss(pixel_mean(fine.rgb, rays_per_pixel), target_rgb)), fine
 
 
 def resize_like_state_dict(module: nn.Module, state_dict: dict) -> None:

@@ -81,17 +81,26 @@ def render_rays_chunked(model: Model, rays: Rays, chunk: int = 1 << 14, cond=Non
 
 
 def render_image(model: Model, cameras: Cameras, index: int, downscale: int = 1,
-                 chunk: int = 1 << 14, cond=None, thresholds: Sequence[float] = ()) -> dict:
+                 chunk: int = 1 << 14, cond=None, thresholds: Sequence[float] = (),
+                 supersample: Optional[int] = None) -> dict:
     """Render camera ``index`` as numpy images: rgb (H, W, 3) in [0, 1], and (H, W) opacity,
     depth (ray distance, m), z_depth (m), median_depth (ray distance, m), median_z_depth (m);
     with ``thresholds`` (K values, 1/m) also threshold_depth / threshold_z_depth (K, H, W),
-    NaN where invalid."""
-    rays = cameras.rays(index, downscale)
+    NaN where invalid.
+
+    ``supersample`` S (None: the model's :attr:`~nerfbot.models.Model.supersample`): rgb and
+    opacity are the means of S x S rays through each pixel (:meth:`Cameras.rays`), as the
+    model was trained to match anti-aliased pixels; the depths always come from the ray
+    through the pixel centre, as a depth camera (and the captures' ground truth) measures
+    them. S > 1 renders S^2 + 1 rays per pixel; pass 1 when only depth is needed."""
+    s = model.supersample if supersample is None else supersample
     h = int(cameras.height[index]) // downscale
     w = int(cameras.width[index]) // downscale
-    if cond is not None:
-        cond = torch.as_tensor(cond, dtype=torch.float32).reshape(1, -1).expand(len(rays), -1)
-    out = render_rays_chunked(model, rays.to(model.aabb.device), chunk, cond, thresholds)
+    out = _render_camera_rays(model, cameras.rays(index, downscale), chunk, cond, thresholds)
+    if s > 1:
+        fine = _render_camera_rays(model, cameras.rays(index, downscale, s), chunk, cond, ())
+        for k, shape in (("rgb", (h, s, w, s, 3)), ("opacity", (h, s, w, s))):
+            out[k] = fine[k].reshape(shape).mean((1, 3)).reshape(out[k].shape)
     img = {k: v.cpu().numpy() for k, v in out.items()}
     result = {"rgb": img["rgb"].reshape(h, w, 3).clip(0, 1),
               **{k: img[k].reshape(h, w) for k in _IMAGE_KEYS[1:]}}
@@ -99,6 +108,13 @@ def render_image(model: Model, cameras: Cameras, index: int, downscale: int = 1,
         if k in img:
             result[k] = img[k].reshape(-1, h, w)
     return result
+
+
+def _render_camera_rays(model: Model, rays: Rays, chunk: int, cond, thresholds) -> dict:
+    """:func:`render_rays_chunked` of one camera's rays; ``cond`` (D,) is that camera's."""
+    if cond is not None:
+        cond = torch.as_tensor(cond, dtype=torch.float32).reshape(1, -1).expand(len(rays), -1)
+    return render_rays_chunked(model, rays.to(model.aabb.device), chunk, cond, thresholds)
 
 
 def sweep_conditions(conditioning, what: str, n: int, base: Optional[Sequence[float]] = None
@@ -147,10 +163,11 @@ def depth(model: Model, cameras: Cameras, index: int, mode: str = "expected",
         if threshold is None:
             raise ValueError("depth mode 'threshold' needs threshold=m (density, 1/m)")
         ms = _as_thresholds(threshold)
-        img = render_image(model, cameras, index, downscale, cond=cond, thresholds=ms)
+        img = render_image(model, cameras, index, downscale, cond=cond, thresholds=ms,
+                           supersample=1)
         maps = img["threshold_z_depth" if z else "threshold_depth"]
         return maps[0] if np.isscalar(threshold) else maps
-    img = render_image(model, cameras, index, downscale, cond=cond)
+    img = render_image(model, cameras, index, downscale, cond=cond, supersample=1)
     key = {("expected", True): "z_depth", ("expected", False): "depth",
            ("median", True): "median_z_depth", ("median", False): "median_depth"}[(mode, z)]
     return img[key]

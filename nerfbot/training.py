@@ -21,7 +21,8 @@ from nerfbot.conditioning import Conditioning, dataset_conditioning, frame_condi
 from nerfbot.data.dataset import Dataset
 from nerfbot.data.writers import write_json_atomic
 from nerfbot.methods import build_model, get_method
-from nerfbot.models import Model, resize_like_state_dict
+from nerfbot.models import Model, pixel_mean, resize_like_state_dict
+from nerfbot.rendering import RenderOutput
 
 log = logging.getLogger(__name__)
 
@@ -130,9 +131,14 @@ class PixelBank:
             maps.append(d.reshape(-1))
         self.depths = torch.from_numpy(np.concatenate(maps)).to(self.device)
 
-    def sample(self, n: int, generator: torch.Generator) -> tuple[Rays, torch.Tensor, torch.Tensor]:
+    def sample(self, n: int, generator: torch.Generator, supersample: int = 1
+               ) -> tuple[Rays, torch.Tensor, torch.Tensor]:
         """``n`` random pixels: their rays, colours (n, 3) float32 in [0, 1], frame slots (n,).
-        Their pixel indices are kept in :attr:`last_pixels`."""
+        Their pixel indices are kept in :attr:`last_pixels`.
+
+        With ``supersample`` S = 1 the rays go through the pixel centres: (n,) rays. With S > 1
+        each pixel gets S x S rays, one through a uniformly random point of each cell of an
+        S x S grid over the pixel (stratified): (n * S * S,) rays, pixel after pixel."""
         p = torch.randint(len(self), (n,), generator=generator).to(self.device)
         self.last_pixels = p
         slot = torch.searchsorted(self.offsets[1:], p, right=True)
@@ -140,8 +146,19 @@ class PixelBank:
         w = self.cameras.width[slot]
         v, u = local // w, local % w
         cam = self.cameras
-        rays = pixel_rays(cam.c2w[slot], cam.fx[slot], cam.fy[slot], cam.cx[slot], cam.cy[slot],
-                          u.float() + 0.5, v.float() + 0.5)
+        if supersample == 1:
+            px, py, ray_slot = u.float() + 0.5, v.float() + 0.5, slot
+        else:
+            k = supersample * supersample
+            cell = torch.arange(k, device=self.device)
+            jitter = torch.rand((n, k, 2), generator=generator).to(self.device)
+            px = (u[:, None] + ((cell % supersample)[None] + jitter[..., 0]) / supersample)
+            py = (v[:, None] + ((cell // supersample)[None] + jitter[..., 1]) / supersample)
+            px, py = px.reshape(-1).float(), py.reshape(-1).float()
+            ray_slot = slot.repeat_interleave(k)
+        rays = pixel_rays(cam.c2w[ray_slot], cam.fx[ray_slot], cam.fy[ray_slot],
+                          cam.cx[ray_slot], cam.cy[ray_slot], px, py,
+                          1.0 / supersample, 1.0 / supersample)
         return rays, self.pixels[p].float() / 255.0, slot
 
 
@@ -187,10 +204,22 @@ def warm_up_step(model: Model, bank: "PixelBank", step: int, progress: float) ->
     twin = copy.deepcopy(model)
     generator = torch.Generator().manual_seed(0)
     twin.before_step(step, generator, progress)
-    rays, target, slot = bank.sample(WARM_UP_RAYS, generator)
-    cond = None if bank.conds is None else bank.conds[slot]
-    loss, _ = twin.loss(rays, target, generator, cond)
+    loss, _, _ = batch_loss(twin, bank, WARM_UP_RAYS, generator, progress)
     loss.backward()
+
+
+def batch_loss(model: Model, bank: "PixelBank", n_rays: int, generator: torch.Generator,
+               progress: float) -> tuple[torch.Tensor, RenderOutput, int]:
+    """The loss of a batch of about ``n_rays`` random training rays at ``progress`` of the
+    budget: S x S rays per pixel (S = ``model.training_supersample(progress)``), whose
+    colours the model averages before comparing them with the pixel's (a pixel's colour is the
+    mean over its area, as a renderer's anti-aliasing or a camera's sensor makes it).
+    Returns the loss, the rays' render output and S."""
+    s = model.training_supersample(progress)
+    k = s * s
+    rays, target, slot = bank.sample(max(1, n_rays // k), generator, s)
+    cond = None if bank.conds is None else bank.conds[slot].repeat_interleave(k, 0)
+    return (*model.loss(rays, target, generator, cond, rays_per_pixel=k), s)
 
 
 class Trainer:
@@ -226,6 +255,8 @@ class Trainer:
         self.train_seconds = 0.0
         self.n_rays = self.model.rays_for_next_batch(None, 0)
         self.last_samples: Optional[int] = None
+        self.batch_supersample = 1
+        """Rays per pixel axis of the last batch (see :func:`batch_loss`)."""
         self.curve: list[dict] = []
         self.evaluate_fn = evaluate_fn
 
@@ -302,13 +333,14 @@ class Trainer:
                 f"learning rate (now {self.optimizer.param_groups[0]['lr']:.2e})")
 
     def _depth_loss(self, out) -> torch.Tensor:
-        """Mean L1 error of the expected z-depth of the last batch, on its pixels with a valid
-        depth, in cube diagonals (0 when none has one)."""
+        """Mean L1 error of the expected z-depth of the last batch (with several rays per pixel,
+        their mean), on its pixels with a valid depth, in cube diagonals (0 when none has one)."""
         gt = self.bank.depths[self.bank.last_pixels]
+        z = pixel_mean(out.z_depth, self.batch_supersample ** 2)
         valid = torch.isfinite(gt)
         if not bool(valid.any()):
-            return out.z_depth.sum() * 0.0
-        return (out.z_depth[valid] - gt[valid]).abs().mean() / self.depth_scale
+            return z.sum() * 0.0
+        return (z[valid] - gt[valid]).abs().mean() / self.depth_scale
 
     def train(self, on_step: Optional[Callable[["Trainer"], None]] = None) -> dict:
         """Run until a budget is spent. ``on_step(trainer)`` is called after every step (tests
@@ -329,16 +361,16 @@ class Trainer:
         try:
             while not self.done():
                 t0 = time.perf_counter()
-                upkeep = self.model.before_step(self.step, self.generator, self.progress())
+                progress = self.progress()
+                upkeep = self.model.before_step(self.step, self.generator, progress)
                 if upkeep.pop("params_changed", False):
                     self.optimizer = self._make_optimizer()
-                lr = learning_rate(self.lr, self.method.lr_final_factor, self.progress())
+                lr = learning_rate(self.lr, self.method.lr_final_factor, progress)
                 for group in self.optimizer.param_groups:
                     group["lr"] = lr * group["lr_scale"]
                 self.n_rays = self.model.rays_for_next_batch(self.last_samples, self.n_rays)
-                rays, target, slot = self.bank.sample(self.n_rays, self.generator)
-                cond = None if self.bank.conds is None else self.bank.conds[slot]
-                loss, out = self.model.loss(rays, target, self.generator, cond)
+                loss, out, self.batch_supersample = batch_loss(
+                    self.model, self.bank, self.n_rays, self.generator, progress)
                 if c.depth_weight > 0:
                     loss = loss + c.depth_weight * self._depth_loss(out)
                 self.optimizer.zero_grad(set_to_none=True)

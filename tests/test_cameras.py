@@ -277,3 +277,38 @@ def test_cameras_indexing_keeps_a_batch_dimension():
     assert len(one) == 1 and one.fx.shape == (1,) and int(one.width[0]) == 16
     torch.testing.assert_close(one.rays(0).directions, cams.rays(1).directions, rtol=0, atol=0)
     assert len(cams.rays(2)) == 24 * 18
+
+
+# ----------------------------------------------------------------------------- supersampling
+
+def _project(rays, c2w, fx, fy, cx, cy) -> np.ndarray:
+    """(R, 2) image points (pixels) where ``rays`` of camera ``c2w`` cross the image plane."""
+    points = rays.origins.double().numpy() + 3.0 * rays.directions.double().numpy()
+    cv = opengl_to_opencv(c2w)
+    cam = (points - cv[:3, 3]) @ cv[:3, :3]
+    return np.stack([fx * cam[:, 0] / cam[:, 2] + cx, fy * cam[:, 1] / cam[:, 2] + cy], -1)
+
+
+@pytest.mark.parametrize("s,k", [(2, 1), (3, 1), (2, 2)])
+def test_supersampled_rays_go_through_the_cell_centres_of_their_pixel(s, k):
+    """rays(i, downscale=k, supersample=s): s x s rays per (downscaled) pixel through the
+    centres of an s x s grid of cells over it, row-major over the finer grid; a pixel's rays
+    average to its centre ray's image point."""
+    c2w = random_pose(4)
+    fx, fy, cx, cy, w, h = 30.0, 28.0, 16.4, 11.2, 12, 8
+    cams = one_camera(c2w, fx, fy, cx, cy, w, h)
+    rays = cams.rays(0, downscale=k, supersample=s)
+    ws, hs = w // k, h // k
+    assert len(rays) == ws * s * hs * s
+    uv = _project(rays, c2w, fx, fy, cx, cy).reshape(hs, s, ws, s, 2)
+    pixel = w / ws  # a downscaled pixel's width in full-resolution pixels (here exactly k)
+    cells = (np.arange(s) + 0.5) / s
+    v, u = np.meshgrid(np.arange(hs), np.arange(ws), indexing="ij")
+    for a in range(s):
+        for b in range(s):
+            np.testing.assert_allclose(uv[:, a, :, b, 0], (u + cells[b]) * pixel, atol=1e-4)
+            np.testing.assert_allclose(uv[:, a, :, b, 1], (v + cells[a]) * pixel, atol=1e-4)
+    centre = _project(cams.rays(0, downscale=k), c2w, fx, fy, cx, cy).reshape(hs, ws, 2)
+    np.testing.assert_allclose(uv.mean((1, 3)), centre, atol=1e-4)
+    with pytest.raises(ValueError, match="supersample"):
+        cams.rays(0, supersample=0)

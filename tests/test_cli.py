@@ -39,6 +39,30 @@ def test_eval_json(tiny_run, capsys):
     assert out["method"] == "ngp" and out["num_params"] > 1e5
     assert 12.0 < out["psnr"] < 60.0 and 0.0 < out["ssim"] <= 1.0
     assert 0.0 < out["depth_mae_m"] < 1.0 and out["render_ms_per_image"] > 0
+    assert out["supersample"] == 2  # ngp's default: 2 x 2 rays per pixel for colour
+
+
+def test_eval_and_render_supersample_override(tiny_run, tmp_path, capsys):
+    """--supersample 1 renders colour through the pixel centres: other colours, the same depth;
+    a non-positive value is refused by the parser."""
+    capsys.readouterr()
+    assert main(["eval", str(tiny_run), "--json", "--supersample", "1"]) == 0
+    one = json.loads(capsys.readouterr().out)
+    assert main(["eval", str(tiny_run), "--json"]) == 0
+    two = json.loads(capsys.readouterr().out)
+    assert one["supersample"] == 1 and two["supersample"] == 2
+    assert one["psnr"] != two["psnr"] and one["depth_mae_m"] == two["depth_mae_m"]
+    folders = {s: tmp_path / f"r{s}" for s in ("1", "2")}
+    for s, folder in folders.items():
+        assert main(["render", str(tiny_run), "--path", "test", "--out", str(folder),
+                     "--supersample", s, "--no-progress"]) == 0
+    rgb = {s: cv2.imread(str(f / "rgb_0000.png")) for s, f in folders.items()}
+    assert np.abs(rgb["1"].astype(int) - rgb["2"].astype(int)).max() > 0
+    np.testing.assert_array_equal(np.load(folders["1"] / "depth_0000.npy"),
+                                  np.load(folders["2"] / "depth_0000.npy"))
+    with pytest.raises(SystemExit):
+        main(["render", str(tiny_run), "--path", "test", "--out", str(tmp_path / "x"),
+              "--supersample", "0"])
 
 
 def test_render_orbit_video_and_test_images(tiny_run, tmp_path):

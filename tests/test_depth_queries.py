@@ -155,3 +155,41 @@ def test_pooled_sweeps_weight_by_pixels_with_a_prediction():
     assert pooled.best_threshold["transparent"] is None       # 67 % < the 80 % required
     with pytest.raises(ValueError, match="share their thresholds"):
         pool_sweeps([sweep(0.01, 1, 1, 1), DepthSweep([5.0])])
+
+
+class StripedSlabField(SlabField):
+    """The slab field with colour stripes 3 cm wide along x: pixels see several stripes."""
+
+    def density(self, x, cond=None):
+        sigma, _ = super().density(x, cond)
+        return sigma, x[:, :1]
+
+    def color(self, feat, d, cond=None):
+        stripe = (torch.floor(feat[:, 0] / 0.03) % 2).float()
+        return torch.stack([stripe, 1 - stripe, torch.full_like(stripe, 0.5)], -1)
+
+
+def test_supersampled_render_averages_colour_over_the_pixel_and_keeps_centre_depth():
+    """render_image(supersample=S): rgb and opacity are the S x S cell-centre rays' means (the
+    area average of a render at S times the resolution); the depths are the centre ray's;
+    None takes the model's own setting."""
+    from nerfbot.models import OccupancyModelConfig
+
+    aabb = torch.tensor([[-1.0, -1.0, 0.0], [1.0, 1.0, 1.0]])
+    model = OccupancyModel(StripedSlabField(), FixedBackground((1.0, 1.0, 1.0)), aabb,
+                           OccupancyModelConfig(supersample=2)).eval()
+    cams, _ = _down_camera(size=12)
+    centre = render_image(model, cams, 0, supersample=1)
+    fine = render_image(model, cams.scaled(2), 0, supersample=1)
+    for s in (None, 2):
+        img = render_image(model, cams, 0, supersample=s)
+        np.testing.assert_allclose(img["rgb"], fine["rgb"].reshape(12, 2, 12, 2, 3).mean((1, 3)),
+                                   atol=1e-6)
+        np.testing.assert_allclose(img["opacity"], fine["opacity"].reshape(12, 2, 12, 2).mean((1, 3)),
+                                   atol=1e-6)
+        for k in ("z_depth", "depth", "median_z_depth"):
+            np.testing.assert_array_equal(img[k], centre[k])
+    # stripes 3 cm wide, pixels ~4 cm wide on the slab: averaging changes the colours
+    assert np.abs(img["rgb"] - centre["rgb"]).max() > 0.2
+    # depth queries do not pay for the colour rays: the same map either way
+    np.testing.assert_array_equal(depth(model, cams, 0), centre["z_depth"])

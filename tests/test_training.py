@@ -250,3 +250,79 @@ def test_fields_that_grow_get_a_new_optimiser_and_reload_at_their_new_size(tiny_
     assert resumed.load() and resumed.model.field.gain.shape == (2,)
     resumed.train()
     assert resumed.step == 6 and torch.isfinite(resumed.model.field.gain).all()
+
+
+# ----------------------------------------------------------------------------- supersampling
+
+def _image_points(rays, cams, slot) -> np.ndarray:
+    """(R, 2) image points (pixels) of rays of the cameras' frames ``slot`` (R,)."""
+    from nerfbot.cameras import opengl_to_opencv
+
+    out = []
+    for r in range(len(rays)):
+        i = int(slot[r])
+        cv = opengl_to_opencv(cams.c2w[i].double().numpy())
+        x = (rays.origins[r].double().numpy() + 2.0 * rays.directions[r].double().numpy()
+             - cv[:3, 3]) @ cv[:3, :3]
+        out.append([float(cams.fx[i]) * x[0] / x[2] + float(cams.cx[i]),
+                    float(cams.fy[i]) * x[1] / x[2] + float(cams.cy[i])])
+    return np.asarray(out)
+
+
+@pytest.mark.parametrize("s", [1, 2, 3])
+def test_supersampled_training_rays_stratify_their_pixel(tiny_capture, s):
+    """PixelBank.sample(n, g, s): n pixels, s x s rays each (pixel after pixel), one through a
+    random point of each of the s x s cells of the pixel; s = 1 is the pixel centre."""
+    from nerfbot.training import PixelBank
+
+    ds = load_dataset(tiny_capture[0])
+    bank = PixelBank(ds, ds.indices("train"))
+    n, k = 40, s * s
+    rays, colours, slot = bank.sample(n, torch.Generator().manual_seed(3), s)
+    assert len(rays) == n * k and colours.shape == (n, 3) and slot.shape == (n,)
+    local = bank.last_pixels - bank.offsets[slot]
+    w = bank.cameras.width[slot]
+    v, u = (local // w).numpy(), (local % w).numpy()
+    uv = _image_points(rays, bank.cameras, slot.repeat_interleave(k)).reshape(n, k, 2)
+    rel = uv - np.stack([u, v], -1)[:, None, :]  # position inside the pixel, in [0, 1)
+    assert (rel > -1e-4).all() and (rel < 1 + 1e-4).all()
+    if s == 1:
+        np.testing.assert_allclose(rel[:, 0], 0.5, atol=1e-4)
+    else:
+        cell = np.floor(np.clip(rel, 0, 1 - 1e-6) * s).astype(int)
+        np.testing.assert_array_equal(cell[..., 0], np.tile(np.arange(k) % s, (n, 1)))
+        np.testing.assert_array_equal(cell[..., 1], np.tile(np.arange(k) // s, (n, 1)))
+        assert rel.reshape(-1, 2).std(0).min() > 0.2  # spread over the pixel, not its centre
+
+
+def test_supersampled_loss_compares_the_pixel_mean_colour(tiny_capture, tmp_path):
+    """With S x S rays per pixel the photometric loss is the MSE of the pixels' mean colours
+    (a pixel's colour is the mean over its area), not the mean of the rays' errors; the
+    trainer's batches hold S^2 rays per pixel."""
+    from nerfbot.models import pixel_mean
+    from nerfbot.training import batch_loss
+
+    ds = load_dataset(tiny_capture[0])
+    cfg = TrainConfig(method="ngp", max_steps=1, seed=0, progress=False,
+                      options={**TINY_NGP, "supersample": 2, "distortion_weight": 0.0})
+    trainer = Trainer(ds, tmp_path / "run", cfg)
+    model = trainer.model
+    # ngp's default: pixel centres for the first half of the budget, then 2 x 2 rays per pixel
+    assert model.supersample == 2 and model.config.supersample_from == 0.5
+    assert [model.training_supersample(p) for p in (0.0, 0.49, 0.5, 1.0)] == [1, 1, 2, 2]
+    _, out, s = batch_loss(model, trainer.bank, 400, torch.Generator().manual_seed(1), 0.3)
+    assert s == 1 and out.rgb.shape == (400, 3) and trainer.bank.last_pixels.shape == (400,)
+    _, out, s = batch_loss(model, trainer.bank, 400, torch.Generator().manual_seed(1), 0.7)
+    assert s == 2 and out.rgb.shape == (400, 3) and trainer.bank.last_pixels.shape == (100,)
+    rays, target, _ = trainer.bank.sample(100, torch.Generator().manual_seed(1), 2)
+    loss = model.loss(rays, target, torch.Generator().manual_seed(7), None, rays_per_pixel=4)[0]
+    rgb = model.render_rays(rays, torch.Generator().manual_seed(7)).rgb  # the same jitter
+    torch.testing.assert_close(loss, ((rgb.reshape(100, 4, 3).mean(1) - target) ** 2).mean(),
+                               rtol=1e-5, atol=1e-8)
+    torch.testing.assert_close(pixel_mean(torch.arange(8.0), 4), torch.tensor([1.5, 5.5]))
+    with pytest.raises(ValueError, match="whole number of pixels"):
+        pixel_mean(torch.zeros(7, 3), 2)
+    for bad in ({"supersample": 0}, {"supersample": 1.5}, {"supersample_from": 1.2}):
+        with pytest.raises(ValueError, match="supersample"):
+            Trainer(ds, tmp_path / "bad", TrainConfig(method="ngp", max_steps=1, progress=False,
+                                                      options=bad))

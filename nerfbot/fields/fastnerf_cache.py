@@ -231,7 +231,7 @@ class FastNeRFCacheModel(Model):
     def rays_for_next_batch(self, last_samples, n_rays):
         self._no_training()
 
-    def loss(self, rays, target_rgb, generator=None, cond=None):
+    def loss(self, rays, target_rgb, generator=None, cond=None, rays_per_pixel=1):
         self._no_training()
 
     # -- rendering -----------------------------------------------------------------------------

@@ -24,7 +24,7 @@ from torch import nn
 from nerfbot.cameras import Rays
 from nerfbot.encodings import FrequencyEncoding
 from nerfbot.fields.base import BoxNormalizer, Field
-from nerfbot.models import Model
+from nerfbot.models import Model, pixel_mean
 from nerfbot.rendering import RenderOutput, composite
 from nerfbot.sampling import pdf_samples, ray_aabb, stratified_samples
 
@@ -273,11 +273,12 @@ class MipNeRFModel(Model):
     def render_rays(self, rays: Rays, generator=None, cond=None) -> RenderOutput:
         return self._render_both(rays, generator, cond)[1]
 
-    def loss(self, rays, target_rgb, generator=None, cond=None):
+    def loss(self, rays, target_rgb, generator=None, cond=None, rays_per_pixel=1):
         coarse, fine = self._render_both(rays, generator, cond)
-        loss = F.mse_loss(fine.rgb, target_rgb)
+        loss = F.mse_loss(pixel_mean(fine.rgb, rays_per_pixel), target_rgb)
         if self.config.coarse_loss_weight > 0:
-            loss = loss + self.config.coarse_loss_weight * F.mse_loss(coarse.rgb, target_rgb)
+            loss = loss + self.config.coarse_loss_weight * F.mse_loss(
+                pixel_mean(coarse.rgb, rays_per_pixel), target_rgb)
         return loss, fine
 
     def rays_for_next_batch(self, last_samples: Optional[int], n_rays: int) -> int:
