@@ -166,7 +166,6 @@ class OccupancyModel(Model):
         if isinstance(cfg.supersample, bool) or not isinstance(cfg.supersample, int) \
                 or cfg.supersample < 1:
             raise ValueError(f"supersample must be an integer >= 1, got {cfg.supersample!r}")
-        self.supersample = cfg.supersample
         if not 0.0 <= cfg.supersample_from <= 1.0:
             raise ValueError(f"supersample_from must be in [0, 1], got {cfg.supersample_from}")
         self.field = field
@@ -175,6 +174,10 @@ class OccupancyModel(Model):
         self.grid = OccupancyGrid(self.aabb, cfg.grid_resolution, cfg.grid_threshold)
         self.dt_min = self.grid.cube_size * math.sqrt(3.0) / cfg.render_steps
         self.dt_max = 8.0 * self.dt_min if cfg.cone_angle > 0 else self.dt_min
+
+    @property
+    def supersample(self) -> int:
+        return self.config.supersample
 
     def training_supersample(self, progress: float) -> int:
         return self.supersample if progress >= self.config.supersample_from else 1

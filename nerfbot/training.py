@@ -255,8 +255,6 @@ class Trainer:
         self.train_seconds = 0.0
         self.n_rays = self.model.rays_for_next_batch(None, 0)
         self.last_samples: Optional[int] = None
-        self.batch_supersample = 1
-        """Rays per pixel axis of the last batch (see :func:`batch_loss`)."""
         self.curve: list[dict] = []
         self.evaluate_fn = evaluate_fn
 
@@ -332,11 +330,12 @@ class Trainer:
                 f"non-finite parameters after step {self.step} ({', '.join(bad[:3])}); lower the "
                 f"learning rate (now {self.optimizer.param_groups[0]['lr']:.2e})")
 
-    def _depth_loss(self, out) -> torch.Tensor:
-        """Mean L1 error of the expected z-depth of the last batch (with several rays per pixel,
-        their mean), on its pixels with a valid depth, in cube diagonals (0 when none has one)."""
+    def _depth_loss(self, out, supersample: int) -> torch.Tensor:
+        """Mean L1 error of the expected z-depth of the last batch (with ``supersample`` squared
+        rays per pixel, their mean), on its pixels with a valid depth, in cube diagonals (0 when
+        none has one)."""
         gt = self.bank.depths[self.bank.last_pixels]
-        z = pixel_mean(out.z_depth, self.batch_supersample ** 2)
+        z = pixel_mean(out.z_depth, supersample ** 2)
         valid = torch.isfinite(gt)
         if not bool(valid.any()):
             return z.sum() * 0.0
@@ -369,10 +368,10 @@ class Trainer:
                 for group in self.optimizer.param_groups:
                     group["lr"] = lr * group["lr_scale"]
                 self.n_rays = self.model.rays_for_next_batch(self.last_samples, self.n_rays)
-                loss, out, self.batch_supersample = batch_loss(
+                loss, out, supersample = batch_loss(
                     self.model, self.bank, self.n_rays, self.generator, progress)
                 if c.depth_weight > 0:
-                    loss = loss + c.depth_weight * self._depth_loss(out)
+                    loss = loss + c.depth_weight * self._depth_loss(out, supersample)
                 self.optimizer.zero_grad(set_to_none=True)
                 if not torch.isfinite(loss):
                     raise FloatingPointError(
