@@ -13,6 +13,8 @@ from nerfbot.data import load_dataset
 from nerfbot.kinematics import JointChain
 from sims.joints import joint_info, rigid_parts
 
+pytestmark = pytest.mark.slow(85)  # rough single-core seconds (tests/conftest.py)
+
 # A static pedestal and a textured block on an arm that turns about the vertical axis: the
 # smallest scene with one moving rigid part (a hinge moves both its position and its faces'
 # directions). Training configurations fill 25..75 % of the hinge range, test ones are held

@@ -13,6 +13,8 @@ from nerfbot.conditioning import Conditioning, dataset_conditioning, frame_condi
 from nerfbot.data import load_dataset
 from nerfbot.fields.dnerf import DNeRFField, DNeRFFieldConfig
 
+pytestmark = pytest.mark.slow(65)  # rough single-core seconds (tests/conftest.py)
+
 AABB = [[-1.0, -1.0, 0.0], [1.0, 1.0, 1.0]]
 TIME = Conditioning("time", ("time",), ((0.0, 1.0),))
 TINY = {"samples_per_batch": 8192, "grid_update_every": 8, "grid_resolution": 32}

@@ -19,6 +19,8 @@ from nerfbot.octahedral import direction_grid, octahedral_decode, octahedral_enc
 from nerfbot.query import depth, render_image
 from nerfbot.training import TrainConfig, Trainer, load_model
 
+pytestmark = pytest.mark.slow(30)  # rough single-core seconds (tests/conftest.py)
+
 TINY = {"samples_per_batch": 8192, "grid_update_every": 8}
 
 

@@ -25,6 +25,8 @@ from nerfbot.models import OccupancyModel, OccupancyModelConfig, resize_like_sta
 from nerfbot.query import render_image
 from nerfbot.training import TrainConfig, Trainer, load_model
 
+pytestmark = pytest.mark.slow(80)  # rough single-core seconds (tests/conftest.py)
+
 AABB = [[-1.0, -0.8, -0.5], [1.0, 0.8, 0.7]]
 
 

@@ -23,6 +23,8 @@ import pytest
 import nbclient
 import nbformat
 
+pytestmark = pytest.mark.slow(320)  # rough single-core seconds (tests/conftest.py)
+
 NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
 QUICKSTART = NOTEBOOKS / "01_quickstart.ipynb"
 GLASS = NOTEBOOKS / "02_glass_grasping.ipynb"
@@ -67,10 +69,8 @@ def _execute(path: Path, work: Path):
             mp.setenv(key, value)
         mp.setenv("NERFBOT_NB_OUT", str(out))
         mp.setenv("MPLBACKEND", "module://matplotlib_inline.backend_inline")
-        # The kernel uses every core, as pytest (waiting for it) does not compute meanwhile:
-        # 2 threads ran the four notebooks in 347 s against 440 s with 1. With the CPU shared
-        # (a benchmark alongside), set OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1: two spinning
-        # OpenMP threads on one free core made each step ~4x slower here.
+        # The kernel inherits the thread limits of the pytest worker that starts it (one
+        # thread per xdist worker, tests/conftest.py), so kernels and workers share the cores.
         client = nbclient.NotebookClient(nb, timeout=CELL_TIMEOUT_S, kernel_name="python3",
                                          resources={"metadata": {"path": str(work)}})
         client.execute()  # raises CellExecutionError (with the cell and traceback) on failure

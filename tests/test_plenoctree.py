@@ -23,6 +23,8 @@ from nerfbot.plenoctree import (PlenOctreeConfig, PlenOctreeModel, bake_octree, 
 from nerfbot.sampling import ray_aabb
 from nerfbot.training import TrainConfig, Trainer, load_model
 
+pytestmark = pytest.mark.slow(35)  # rough single-core seconds (tests/conftest.py)
+
 AABB = [[-0.6, -0.4, 0.0], [0.6, 0.4, 0.9]]
 TINY_OPTIONS = {"samples_per_batch": 8192, "grid_update_every": 8}
 BAKE_DEPTH = 6  # 64^3 leaves over the tiny scene's cube: ~1.5 cm, about a 32x32 pixel

@@ -11,6 +11,8 @@ from nerfbot.evaluation import evaluate
 from nerfbot.metrics import psnr
 from nerfbot.training import CHECKPOINT, TrainConfig, Trainer, load_model
 
+pytestmark = pytest.mark.slow(55)  # rough single-core seconds (tests/conftest.py)
+
 # Small batches keep a step cheap on 32x32 images; the quality test trains a fixed step budget.
 TINY_NGP = {"samples_per_batch": 8192, "grid_update_every": 8}
 
