@@ -35,6 +35,10 @@ log = logging.getLogger(__name__)
 TRANSPARENT_GRID_THRESHOLD = 0.001
 #: Distortion-loss weight for scenes with transparent geoms (fewer floaters at low thresholds).
 TRANSPARENT_DISTORTION = 0.01
+#: Dex-NeRF density threshold (1/m) of the default depth query for scenes with transparent
+#: geoms: the best threshold on the transparent pixels of the held-out glassware scene
+#: (glassware:1000, 1.38 cm MAE there; BENCHMARKS.md, issue 3), as the grasp task calibrates it.
+TRANSPARENT_DEPTH_THRESHOLD = 5.0
 #: Share of the training pixels on shiny surfaces (manifest ``shiny_pixel_fraction``) below
 #: which a scene without glass gets view-independent colour. Measured with step budgets
 #: (BENCHMARKS.md, issue 4): on the tabletop (2.4 % shiny pixels) SH degree 0 led degree 4 by
@@ -123,11 +127,12 @@ def choose_from_manifest(manifest: Optional[dict]) -> AutoChoice:
     if transparent:
         choice.options["grid_threshold"] = TRANSPARENT_GRID_THRESHOLD
         choice.options["distortion_weight"] = TRANSPARENT_DISTORTION
-        choice.query_defaults["depth_mode"] = "threshold"
+        choice.query_defaults.update(depth_mode="threshold", threshold=TRANSPARENT_DEPTH_THRESHOLD)
         choice.reasons.append(
             f"{len(transparent)} transparent geom(s): occupancy threshold "
             f"{TRANSPARENT_GRID_THRESHOLD} (faint density kept), distortion loss "
-            f"{TRANSPARENT_DISTORTION}, threshold depth (Dex-NeRF) as the default depth query")
+            f"{TRANSPARENT_DISTORTION}, threshold depth (Dex-NeRF, m = "
+            f"{TRANSPARENT_DEPTH_THRESHOLD:g} /m) as the default depth query of `nerfbot render`")
     if manifest.get("bounds"):
         choice.reasons.append("bounds from the manifest")
     from nerfbot.methods import option_names

@@ -300,6 +300,38 @@ def _render_plan(args, model, info, data):
     return ds.cameras(idx), conds
 
 
+def _render_depth_query(args, run: Path) -> tuple[str, float | None, str]:
+    """(mode, threshold in 1/m or None, where they came from) of ``nerfbot render``'s depth:
+    the flags, else the ``query_defaults`` that ``--method auto`` wrote to RUN/auto.json
+    (threshold depth for scenes with glass), else expected depth."""
+    from nerfbot.data.spec import read_json
+
+    auto = run / "auto.json"
+    defaults = (read_json(auto).get("query_defaults") or {}) if auto.exists() else {}
+    mode = args.depth_mode or defaults.get("depth_mode", "expected")
+    threshold = args.threshold if args.threshold is not None else defaults.get("threshold")
+    source = "--depth-mode" if args.depth_mode else (f"{auto}" if "depth_mode" in defaults
+                                                     else "default")
+    if mode == "threshold":
+        if threshold is None:
+            raise SystemExit(f"nerfbot render: threshold depth needs --threshold M (density, "
+                             f"1/m; {auto} gives none)")
+        if not float(threshold) > 0:
+            raise SystemExit(f"nerfbot render: --threshold must be > 0 (1/m), got {threshold}")
+    return mode, (float(threshold) if mode == "threshold" else None), source
+
+
+def _depth_of(img: dict, mode: str):
+    """((H, W) z-depth in metres, (H, W) bool valid) of a :func:`render_image` result."""
+    import numpy as np
+
+    if mode == "threshold":
+        z = img["threshold_z_depth"][0]
+        return z, np.isfinite(z)
+    z = img["median_z_depth"] if mode == "median" else img["z_depth"]
+    return z, img["opacity"] > 0.5
+
+
 def cmd_render(args) -> int:
     import numpy as np
 
@@ -310,10 +342,13 @@ def cmd_render(args) -> int:
 
     run = Path(args.run)
     model, info = load_model(run, args.device)
+    mode, threshold, source = _render_depth_query(args, run)
     data = Path(args.data) if args.data else _run_data_path(run)
     cams, conds = _render_plan(args, model, info, data)
     out = Path(args.out)
-    images = (render_image(model, cams, i, cond=conds[i], supersample=args.supersample)
+    thresholds = [threshold] if mode == "threshold" else []
+    images = (render_image(model, cams, i, cond=conds[i], supersample=args.supersample,
+                           thresholds=thresholds)
               for i in range(len(cams)))
     images = tqdm(images, total=len(cams), desc="render", disable=args.no_progress)
     if out.suffix.lower() in (".mp4", ".avi"):
@@ -322,19 +357,21 @@ def cmd_render(args) -> int:
                 if args.what == "rgb":
                     yield to_uint8(img["rgb"])
                 elif args.what == "depth":
-                    yield colorize_depth(img["z_depth"], img["opacity"] > 0.5)
+                    yield colorize_depth(*_depth_of(img, mode))
                 else:
                     yield to_uint8(np.repeat(img["opacity"][..., None], 3, -1))
         write_video(out, frames(), args.fps)
     else:
         out.mkdir(parents=True, exist_ok=True)
         for i, img in enumerate(images):
+            z, valid = _depth_of(img, mode)
             save_image(out / f"rgb_{i:04d}.png", img["rgb"])
-            save_image(out / f"depth_{i:04d}.png", colorize_depth(img["z_depth"], img["opacity"] > 0.5))
+            save_image(out / f"depth_{i:04d}.png", colorize_depth(z, valid))
             save_image(out / f"opacity_{i:04d}.png", np.repeat(img["opacity"][..., None], 3, -1))
-            np.save(out / f"depth_{i:04d}.npy", img["z_depth"].astype(np.float32))
+            np.save(out / f"depth_{i:04d}.npy", z.astype(np.float32))
     what = f"a {args.sweep} sweep" if args.sweep else f"{args.path} views"
-    print(f"wrote {len(cams)} images of {what} to {out}")
+    depth = mode + (f" (m = {threshold:g} /m)" if threshold is not None else "")
+    print(f"wrote {len(cams)} images of {what} to {out}; depth: {depth}, from {source}")
     return 0
 
 
@@ -537,6 +574,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "with; 1 renders S^2 + 1 times fewer rays)")
     p.add_argument("--size", type=int, nargs="+", default=None, metavar="N",
                    help="orbit image size N or W H (default: the training size)")
+    p.add_argument("--depth-mode", default=None, choices=("expected", "median", "threshold"),
+                   help="depth images (z-depth; .npy in metres, NaN where a threshold is never "
+                        "reached): default the run's auto.json query default (threshold for "
+                        "glass), else expected")
+    p.add_argument("--threshold", type=float, default=None, metavar="M",
+                   help="density threshold of --depth-mode threshold (1/m, Dex-NeRF)")
     p.add_argument("--data", type=Path, default=None)
     p.add_argument("--device", default="cpu")
     p.add_argument("--no-progress", action="store_true")

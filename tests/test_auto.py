@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from nerfbot.auto import (TRANSPARENT_GRID_THRESHOLD, auto_train_config, bench_rows,
-                          choose_budget, choose_from_manifest)
+from nerfbot.auto import (TRANSPARENT_DEPTH_THRESHOLD, TRANSPARENT_GRID_THRESHOLD,
+                          auto_train_config, bench_rows, choose_budget, choose_from_manifest)
 from nerfbot.data import load_dataset
 
 
@@ -48,7 +48,7 @@ def test_glass_keeps_faint_density_and_defaults_to_threshold_depth():
     c = choose_from_manifest(_manifest(transparent_geoms=["glass_a"]))
     assert c.options["grid_threshold"] == TRANSPARENT_GRID_THRESHOLD < 0.01
     assert c.options["distortion_weight"] > 0
-    assert c.query_defaults == {"depth_mode": "threshold"}
+    assert c.query_defaults == {"depth_mode": "threshold", "threshold": TRANSPARENT_DEPTH_THRESHOLD}
 
 
 def test_changing_scenes_get_a_conditioned_method():

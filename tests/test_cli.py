@@ -86,6 +86,49 @@ def test_render_orbit_video_and_test_images(tiny_run, tmp_path):
     assert sorted(p.name for p in folder.glob("rgb_*.png")) == [f"rgb_{i:04d}.png" for i in range(4)]
 
 
+def test_render_depth_modes_and_the_auto_runs_default(tiny_run, tmp_path, capsys):
+    """--depth-mode picks the depth written (.npy z-depth, NaN where a threshold is never
+    reached); a run whose auto.json asks for threshold depth (glass) renders it by default."""
+    import shutil
+
+    from nerfbot.query import render_image
+    from nerfbot.training import load_model
+
+    th = 1.0  # 1/m: the 30-step run is still faint (5 /m, the glass default, is never reached)
+    model, _ = load_model(tiny_run)
+    ds = load_dataset(json.loads((tiny_run / "config.json").read_text())["data"])
+    truth = render_image(model, ds.cameras(ds.indices("test")), 0, thresholds=[th])
+    modes = {"expected": truth["z_depth"], "median": truth["median_z_depth"],
+             "threshold": truth["threshold_z_depth"][0]}
+    assert np.isnan(modes["threshold"]).any() and np.isfinite(modes["threshold"]).any()
+    for mode, want in modes.items():
+        folder = tmp_path / mode
+        extra = ["--threshold", str(th)] if mode == "threshold" else []
+        assert main(["render", str(tiny_run), "--path", "test", "--out", str(folder),
+                     "--depth-mode", mode, *extra, "--no-progress"]) == 0
+        np.testing.assert_allclose(np.load(folder / "depth_0000.npy"), want, rtol=1e-6)
+    assert not np.allclose(modes["expected"], modes["median"])
+    with pytest.raises(SystemExit, match="--threshold"):
+        main(["render", str(tiny_run), "--path", "test", "--out", str(tmp_path / "x"),
+              "--depth-mode", "threshold"])
+
+    glass_run = tmp_path / "glass_run"  # as `nerfbot train --method auto` leaves a glass scene
+    shutil.copytree(tiny_run, glass_run)
+    (glass_run / "auto.json").write_text(json.dumps(
+        {"method": "ngp", "query_defaults": {"depth_mode": "threshold", "threshold": th}}))
+    capsys.readouterr()
+    assert main(["render", str(glass_run), "--path", "test", "--out", str(tmp_path / "auto"),
+                 "--no-progress"]) == 0
+    assert "threshold (m = 1 /m), from" in capsys.readouterr().out
+    np.testing.assert_allclose(np.load(tmp_path / "auto" / "depth_0000.npy"), modes["threshold"],
+                               rtol=1e-6)
+    # the flags override the run's defaults
+    assert main(["render", str(glass_run), "--path", "test", "--out", str(tmp_path / "exp"),
+                 "--depth-mode", "expected", "--no-progress"]) == 0
+    np.testing.assert_allclose(np.load(tmp_path / "exp" / "depth_0000.npy"), modes["expected"],
+                               rtol=1e-6)
+
+
 def test_train_refuses_to_overwrite_a_run(tiny_run, tiny_capture, capsys):
     with pytest.raises(SystemExit, match="--resume"):
         main(["train", "--data", str(tiny_capture[0]), "--max-steps", "1", "--out", str(tiny_run)])
