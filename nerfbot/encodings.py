@@ -4,6 +4,7 @@ factorised (K-Planes) plane grid."""
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -198,6 +199,31 @@ def _n_workers() -> int:
     import numba
 
     return numba.get_num_threads()
+
+
+@dataclass
+class HashGridConfig:
+    """The hash-grid fields of every field config built on :class:`HashEncoding` (ngp,
+    fastnerf, plenoctree's NeRF-SH): they subclass this, so each takes the same
+    ``--option`` names with the same defaults."""
+
+    n_levels: int = 16
+    """L, hash-grid resolution levels."""
+    n_features: int = 2
+    """F, features per level."""
+    log2_hashmap_size: int = 17
+    """log2 of the hash-table size T per level (2^17 rows x F floats = 1 MB: fits in L2)."""
+    min_res: int = 16
+    """Cells per axis of the coarsest level (over the cube enclosing the bounds)."""
+    max_res: int = 512
+    """Cells per axis of the finest level."""
+    backend: str = "numba"
+    """Hash-encoding implementation: "numba" (fast CPU) or "torch" (reference twin)."""
+
+    def hash_encoding(self, seed: int | None = None) -> "HashEncoding":
+        """A :class:`HashEncoding` with these settings."""
+        return HashEncoding(self.n_levels, self.n_features, self.log2_hashmap_size,
+                            self.min_res, self.max_res, backend=self.backend, seed=seed)
 
 
 class HashEncoding(nn.Module):

@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from nerfbot.encodings import FrequencyEncoding, HashEncoding, SHEncoding
+from nerfbot.encodings import FrequencyEncoding, HashGridConfig, SHEncoding
 from nerfbot.fields.base import BoxNormalizer, Field, mlp, trunc_exp
 from nerfbot.kernels.fastnerf_cache import BRICK
 from nerfbot.octahedral import direction_grid
@@ -31,22 +31,15 @@ RAW_DENSITY_RANGE = (-20.0, 15.0)
 
 
 @dataclass
-class FastNeRFFieldConfig:
+class FastNeRFFieldConfig(HashGridConfig):
+    """The hash grid's fields (:class:`~nerfbot.encodings.HashGridConfig`) apply to the hash
+    variant of F_pos."""
+
     components: int = 8
     """D, radiance components of F_pos and weights of F_dir."""
     position_encoding: str = "hash"
     """"hash": hash grid + small MLP (fast on CPU); "frequency": the paper's 8-layer MLP on the
     positional encoding (slow on CPU)."""
-    n_levels: int = 16
-    """Hash grid: resolution levels."""
-    n_features: int = 2
-    """Hash grid: features per level."""
-    log2_hashmap_size: int = 17
-    """Hash grid: log2 of the table rows per level."""
-    min_res: int = 16
-    """Hash grid: cells per axis of the coarsest level."""
-    max_res: int = 512
-    """Hash grid: cells per axis of the finest level."""
     hidden: int = 64
     """Hash variant: width of the position MLP."""
     position_layers: int = 2
@@ -71,8 +64,6 @@ class FastNeRFFieldConfig:
     :class:`~nerfbot.fields.ngp.NGPFieldConfig`)."""
     mlp_lr_scale: float = 1.0
     """Hash variant: learning rate of the MLPs relative to the hash table's."""
-    backend: str = "numba"
-    """Hash-encoding implementation: "numba" or "torch"."""
 
 
 class _FrequencyMLP(nn.Module):
@@ -114,8 +105,7 @@ class FastNeRFField(Field):
         self.normalize = BoxNormalizer(aabb)
         out_dim = 1 + 3 * cfg.components
         if cfg.position_encoding == "hash":
-            self.encoding = HashEncoding(cfg.n_levels, cfg.n_features, cfg.log2_hashmap_size,
-                                         cfg.min_res, cfg.max_res, backend=cfg.backend, seed=seed)
+            self.encoding = cfg.hash_encoding(seed)
             self.position_net = mlp(self.encoding.out_dim, cfg.hidden, cfg.position_layers, out_dim)
         elif cfg.position_encoding == "frequency":
             self.encoding = None

@@ -13,7 +13,7 @@ from typing import Optional
 
 import torch
 
-from nerfbot.encodings import HashEncoding, spherical_harmonics
+from nerfbot.encodings import HashGridConfig, spherical_harmonics
 from nerfbot.fields.base import BoxNormalizer, Field, mlp, trunc_exp
 
 #: The constant degree-0 SH basis function Y_00 = 1 / (2 sqrt(pi)).
@@ -46,17 +46,7 @@ def sh_color(coeffs: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
 
 
 @dataclass
-class NeRFSHFieldConfig:
-    n_levels: int = 16
-    """L, hash-grid resolution levels."""
-    n_features: int = 2
-    """F, features per level."""
-    log2_hashmap_size: int = 17
-    """log2 of the hash-table size T per level."""
-    min_res: int = 16
-    """Cells per axis of the coarsest level (over the cube enclosing the bounds)."""
-    max_res: int = 512
-    """Cells per axis of the finest level."""
+class NeRFSHFieldConfig(HashGridConfig):
     hidden: int = 64
     """Width of the MLP."""
     hidden_layers: int = 2
@@ -64,8 +54,6 @@ class NeRFSHFieldConfig:
     sh_degree: int = 2
     """Degree of the spherical harmonics of the colour: 3 (degree + 1)^2 coefficients per point
     (2 -> 27, the paper's choice for its speed / quality balance)."""
-    backend: str = "numba"
-    """Hash-encoding implementation: "numba" (fast CPU) or "torch" (reference twin)."""
     initial_transmittance: float = 0.2
     """Transmittance of a ray crossing the whole cube at initialisation (as in the ngp field)."""
     mlp_lr_scale: float = 1.0
@@ -98,8 +86,7 @@ class NeRFSHField(Field):
             raise ValueError(f"initial_transmittance must be in (0, 1), got {cfg.initial_transmittance}")
         self.n_sh = (cfg.sh_degree + 1) ** 2
         self.normalize = BoxNormalizer(aabb)
-        self.encoding = HashEncoding(cfg.n_levels, cfg.n_features, cfg.log2_hashmap_size,
-                                     cfg.min_res, cfg.max_res, backend=cfg.backend, seed=seed)
+        self.encoding = cfg.hash_encoding(seed)
         self.mlp = mlp(self.encoding.out_dim, cfg.hidden, cfg.hidden_layers, 1 + 3 * self.n_sh)
         diagonal = math.sqrt(3.0) * float(self.normalize.cube_size)
         self.density_bias = math.log(-math.log(cfg.initial_transmittance) / diagonal)

@@ -8,22 +8,12 @@ from typing import Optional
 
 import torch
 
-from nerfbot.encodings import HashEncoding, SHEncoding
+from nerfbot.encodings import HashGridConfig, SHEncoding
 from nerfbot.fields.base import BoxNormalizer, Field, mlp, trunc_exp
 
 
 @dataclass
-class NGPFieldConfig:
-    n_levels: int = 16
-    """L, hash-grid resolution levels."""
-    n_features: int = 2
-    """F, features per level."""
-    log2_hashmap_size: int = 17
-    """log2 of the hash-table size T per level (2^17 rows x F floats = 1 MB: fits in L2)."""
-    min_res: int = 16
-    """Cells per axis of the coarsest level (over the cube enclosing the bounds)."""
-    max_res: int = 512
-    """Cells per axis of the finest level."""
+class NGPFieldConfig(HashGridConfig):
     hidden: int = 64
     """Width of the density and colour MLPs."""
     geo_feat_dim: int = 15
@@ -39,8 +29,6 @@ class NGPFieldConfig:
     MLP's weights on those bands start at zero. Early in training, view-dependent colour can
     explain away wrong geometry (the shape-radiance ambiguity) and slows short budgets down.
     0: every band from the start."""
-    backend: str = "numba"
-    """Hash-encoding implementation: "numba" (fast CPU) or "torch" (reference twin)."""
     initial_transmittance: float = 0.2
     """Transmittance of a ray crossing the whole cube at initialisation. Sets a density bias so
     the scene starts nearly empty and a learned background explains what it can (sky) before
@@ -63,8 +51,7 @@ class NGPField(Field):
         super().__init__()
         self.config = cfg = config or NGPFieldConfig()
         self.normalize = BoxNormalizer(aabb)
-        self.encoding = HashEncoding(cfg.n_levels, cfg.n_features, cfg.log2_hashmap_size,
-                                     cfg.min_res, cfg.max_res, backend=cfg.backend, seed=seed)
+        self.encoding = cfg.hash_encoding(seed)
         self.density_mlp = mlp(self.encoding.out_dim, cfg.hidden, 1, 1 + cfg.geo_feat_dim)
         self.dir_encoding = SHEncoding(cfg.sh_degree)
         self.color_mlp = mlp(cfg.geo_feat_dim + self.dir_encoding.out_dim, cfg.hidden,
