@@ -305,6 +305,7 @@ def _render_depth_query(args, run: Path) -> tuple[str, float | None, str]:
     the flags, else the ``query_defaults`` that ``--method auto`` wrote to RUN/auto.json
     (threshold depth for scenes with glass), else expected depth."""
     from nerfbot.data.spec import read_json
+    from nerfbot.query import as_thresholds
 
     auto = run / "auto.json"
     defaults = (read_json(auto).get("query_defaults") or {}) if auto.exists() else {}
@@ -312,13 +313,12 @@ def _render_depth_query(args, run: Path) -> tuple[str, float | None, str]:
     threshold = args.threshold if args.threshold is not None else defaults.get("threshold")
     source = "--depth-mode" if args.depth_mode else (f"{auto}" if "depth_mode" in defaults
                                                      else "default")
-    if mode == "threshold":
-        if threshold is None:
-            raise SystemExit(f"nerfbot render: threshold depth needs --threshold M (density, "
-                             f"1/m; {auto} gives none)")
-        if not float(threshold) > 0:
-            raise SystemExit(f"nerfbot render: --threshold must be > 0 (1/m), got {threshold}")
-    return mode, (float(threshold) if mode == "threshold" else None), source
+    if mode != "threshold":
+        return mode, None, source
+    if threshold is None:
+        raise SystemExit(f"nerfbot render: threshold depth needs --threshold M (density, "
+                         f"1/m; {auto} gives none)")
+    return mode, as_thresholds(threshold)[0], source
 
 
 def _depth_of(img: dict, mode: str):
@@ -341,8 +341,8 @@ def cmd_render(args) -> int:
     from tqdm.auto import tqdm
 
     run = Path(args.run)
-    model, info = load_model(run, args.device)
     mode, threshold, source = _render_depth_query(args, run)
+    model, info = load_model(run, args.device)
     data = Path(args.data) if args.data else _run_data_path(run)
     cams, conds = _render_plan(args, model, info, data)
     out = Path(args.out)

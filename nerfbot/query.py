@@ -25,7 +25,9 @@ DEPTH_MODES = ("expected", "median", "threshold")
 _IMAGE_KEYS = ("rgb", "opacity", "depth", "z_depth", "median_depth", "median_z_depth")
 
 
-def _as_thresholds(threshold) -> list[float]:
+def as_thresholds(threshold) -> list[float]:
+    """Density threshold(s) in 1/m (a number, a sequence or None) as a list, each checked finite
+    and > 0 (ValueError otherwise)."""
     if threshold is None:
         return []
     values = [float(threshold)] if np.isscalar(threshold) else [float(m) for m in threshold]
@@ -49,7 +51,7 @@ def render_rays_chunked(model: Model, rays: Rays, chunk: int = 1 << 14, cond=Non
         threshold_depth (K, R) ray distance and threshold_z_depth (K, R), NaN where the ray never
         reaches the threshold.
     """
-    thresholds = _as_thresholds(list(thresholds))
+    thresholds = as_thresholds(list(thresholds))
     was_training = model.training
     if was_training:  # train() walks every submodule: skip it when already in eval mode
         model.eval()
@@ -162,7 +164,7 @@ def depth(model: Model, cameras: Cameras, index: int, mode: str = "expected",
     if mode == "threshold":
         if threshold is None:
             raise ValueError("depth mode 'threshold' needs threshold=m (density, 1/m)")
-        ms = _as_thresholds(threshold)
+        ms = as_thresholds(threshold)
         img = render_image(model, cameras, index, downscale, cond=cond, thresholds=ms,
                            supersample=1)
         maps = img["threshold_z_depth" if z else "threshold_depth"]

@@ -111,6 +111,10 @@ def test_render_depth_modes_and_the_auto_runs_default(tiny_run, tmp_path, capsys
     with pytest.raises(SystemExit, match="--threshold"):
         main(["render", str(tiny_run), "--path", "test", "--out", str(tmp_path / "x"),
               "--depth-mode", "threshold"])
+    capsys.readouterr()
+    assert main(["render", str(tiny_run), "--path", "test", "--out", str(tmp_path / "x"),
+                 "--depth-mode", "threshold", "--threshold", "-1"]) == 2
+    assert "> 0" in capsys.readouterr().err and not (tmp_path / "x").exists()
 
     glass_run = tmp_path / "glass_run"  # as `nerfbot train --method auto` leaves a glass scene
     shutil.copytree(tiny_run, glass_run)
