@@ -3,7 +3,8 @@
 For each object the manifest declares: pixels, MAE of the expected z-depth, its signed median
 (positive: the field's surface lies too far), MAE of the median and of the threshold depth
 (m = 5 /m), and the expected depth's MAE on interior pixels (3 x 3 eroded mask) and on the
-silhouette; all in cm.
+silhouette; all in cm. Last, the median opacity of the object's pixels (about 1 for an opaque
+surface placed too far, below 1 for a veil).
 
 usage: python docs/benchmarks/object_depth_errors.py RUN DATA
 """
@@ -34,7 +35,8 @@ for slot, i in enumerate(idx):
         m = valid & (seg == int(g))
         if not m.any():
             continue
-        r = rows.setdefault(name, {"e": [], "m": [], "t": [], "int": []})
+        r = rows.setdefault(name, {"e": [], "m": [], "t": [], "int": [], "op": []})
+        r["op"].append(out["opacity"][m])
         inner = cv2.erode((seg == int(g)).astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
         r["int"].append(inner[m])
         r["e"].append((out["z_depth"] - gt)[m]); r["m"].append((out["median_z_depth"] - gt)[m])
@@ -46,7 +48,7 @@ for name, r in rows.items():
     tot["e"].append(e); tot["m"].append(md); tot["t"].append(t)
     tf = t[np.isfinite(t)]
     inn = np.concatenate(r["int"]); tot.setdefault("int", []).append(inn)
-    print(f"{name:18s} {e.size:5d} {100*np.abs(e).mean():7.2f} {100*np.median(e):+7.2f} {100*np.abs(md).mean():7.2f} {100*np.abs(tf).mean():7.2f}   int {100*np.abs(e[inn]).mean():6.2f} edge {100*np.abs(e[~inn]).mean():6.2f} ({inn.mean():.2f} int)")
+    print(f"{name:18s} {e.size:5d} {100*np.abs(e).mean():7.2f} {100*np.median(e):+7.2f} {100*np.abs(md).mean():7.2f} {100*np.abs(tf).mean():7.2f}   int {100*np.abs(e[inn]).mean():6.2f} edge {100*np.abs(e[~inn]).mean():6.2f} ({inn.mean():.2f} int)   opacity {np.median(np.concatenate(r['op'])):.3f}")
 inn = np.concatenate(tot["int"])
 e = np.concatenate(tot["e"]); md = np.concatenate(tot["m"]); t = np.concatenate(tot["t"]); tf = t[np.isfinite(t)]
 print(f"{'ALL OBJECTS':18s} {e.size:5d} {100*np.abs(e).mean():7.2f} {100*np.median(e):+7.2f} {100*np.abs(md).mean():7.2f} {100*np.abs(tf).mean():7.2f}   int {100*np.abs(e[inn]).mean():6.2f} edge {100*np.abs(e[~inn]).mean():6.2f} ({inn.mean():.2f} int)")
