@@ -35,6 +35,10 @@ log = logging.getLogger(__name__)
 TRANSPARENT_GRID_THRESHOLD = 0.001
 #: Distortion-loss weight for scenes with transparent geoms (fewer floaters at low thresholds).
 TRANSPARENT_DISTORTION = 0.01
+#: Log-density noise for scenes with transparent geoms: none. Glass is a real veil, faint density
+#: a threshold finds (Dex-NeRF); the noise that turns ngp's veils into surfaces (its default)
+#: would push glass to opaque or empty, and the glass figures were measured without it.
+TRANSPARENT_DENSITY_NOISE = 0.0
 #: Dex-NeRF density threshold (1/m) of the default depth query for scenes with transparent
 #: geoms: the best threshold on the transparent pixels of the held-out glassware scene
 #: (glassware:1000, 1.38 cm MAE there; BENCHMARKS.md, issue 3), as the grasp task calibrates it.
@@ -127,11 +131,12 @@ def choose_from_manifest(manifest: Optional[dict]) -> AutoChoice:
     if transparent:
         choice.options["grid_threshold"] = TRANSPARENT_GRID_THRESHOLD
         choice.options["distortion_weight"] = TRANSPARENT_DISTORTION
+        choice.options["density_noise"] = TRANSPARENT_DENSITY_NOISE
         choice.query_defaults.update(depth_mode="threshold", threshold=TRANSPARENT_DEPTH_THRESHOLD)
         choice.reasons.append(
             f"{len(transparent)} transparent geom(s): occupancy threshold "
             f"{TRANSPARENT_GRID_THRESHOLD} (faint density kept), distortion loss "
-            f"{TRANSPARENT_DISTORTION}, threshold depth (Dex-NeRF, m = "
+            f"{TRANSPARENT_DISTORTION}, no density noise (glass is a real veil), threshold depth (Dex-NeRF, m = "
             f"{TRANSPARENT_DEPTH_THRESHOLD:g} /m) as the default depth query of `nerfbot render`")
     if manifest.get("bounds"):
         choice.reasons.append("bounds from the manifest")

@@ -48,6 +48,8 @@ def test_glass_keeps_faint_density_and_defaults_to_threshold_depth():
     c = choose_from_manifest(_manifest(transparent_geoms=["glass_a"]))
     assert c.options["grid_threshold"] == TRANSPARENT_GRID_THRESHOLD < 0.01
     assert c.options["distortion_weight"] > 0
+    assert c.options["density_noise"] == 0.0  # glass is a real veil: no noise against veils
+    assert "density_noise" not in choose_from_manifest(_manifest()).options
     assert c.query_defaults == {"depth_mode": "threshold", "threshold": TRANSPARENT_DEPTH_THRESHOLD}
 
 
