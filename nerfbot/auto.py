@@ -136,8 +136,9 @@ def choose_from_manifest(manifest: Optional[dict]) -> AutoChoice:
         choice.reasons.append(
             f"{len(transparent)} transparent geom(s): occupancy threshold "
             f"{TRANSPARENT_GRID_THRESHOLD} (faint density kept), distortion loss "
-            f"{TRANSPARENT_DISTORTION}, no density noise (glass is a real veil), threshold depth (Dex-NeRF, m = "
-            f"{TRANSPARENT_DEPTH_THRESHOLD:g} /m) as the default depth query of `nerfbot render`")
+            f"{TRANSPARENT_DISTORTION}, no density noise (glass is a real veil), threshold depth "
+            f"(Dex-NeRF, m = {TRANSPARENT_DEPTH_THRESHOLD:g} /m) as the default depth query of "
+            "`nerfbot render`")
     if manifest.get("bounds"):
         choice.reasons.append("bounds from the manifest")
     from nerfbot.methods import option_names

@@ -90,8 +90,8 @@ def _static_occupancy(field_cls, config_cls, occupancy_defaults: dict | None = N
 #: ngp's own renderer defaults: 2 x 2 rays per pixel from half the budget on. On the tabletop in
 #: 180 s: +1.2 dB test PSNR and the objects' depth error 2.80 -> 2.0-2.4 cm; from the start, the
 #: large box of a capture without a manifest lost 2 dB (BENCHMARKS.md, issue 2, session 10).
-#: Log-density noise 1.0: uniformly coloured objects become surfaces instead of veils (BENCHMARKS.md,
-#: issue 2, session 12).
+#: Log-density noise 1.0: uniformly coloured objects become surfaces instead of veils
+#: (BENCHMARKS.md, issue 2, session 12).
 NGP_OCCUPANCY_DEFAULTS = {"supersample": 2, "supersample_from": 0.5, "density_noise": 1.0}
 
 _build_ngp = _static_occupancy(NGPField, NGPFieldConfig, NGP_OCCUPANCY_DEFAULTS)

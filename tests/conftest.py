@@ -3,8 +3,9 @@
 The suite runs under pytest-xdist, one worker per core (``addopts`` in pyproject.toml). Each
 worker then computes with one thread: the tests' tensors are small, so two threads in one
 process gained little (with warm caches on a 2-core machine, the suite took 12:35 with 2
-threads in one process and 8:00 with 2 single-thread workers). Modules marked ``slow(seconds)`` go first, costliest
-first, so a long module does not start last and leave the other workers idle at the end.
+threads in one process and 8:00 with 2 single-thread workers). Modules marked
+``slow(seconds)`` go first, costliest first, so a long module does not start last and leave the
+other workers idle at the end.
 """
 
 from __future__ import annotations

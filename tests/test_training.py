@@ -335,10 +335,12 @@ def test_density_noise_scales_training_densities_and_leaves_rendering_alone(tiny
     default), drawn from the training generator (so runs stay reproducible); the same field
     without noise gives the same samples with the noise-free densities, and renders the same."""
     ds = load_dataset(tiny_capture[0])
-    noisy = Trainer(ds, tmp_path / "a", TrainConfig(method="ngp", max_steps=1, progress=False,
-                                                    options=TINY_NGP)).model
-    clean = Trainer(ds, tmp_path / "b", TrainConfig(method="ngp", max_steps=1, progress=False,
-                                                    options={**TINY_NGP, "density_noise": 0.0})).model
+
+    def model(folder, **options):
+        cfg = TrainConfig(method="ngp", max_steps=1, progress=False, options={**TINY_NGP, **options})
+        return Trainer(ds, tmp_path / folder, cfg).model
+
+    noisy, clean = model("a"), model("b", density_noise=0.0)
     assert noisy.config.density_noise == 1.0 and clean.config.density_noise == 0.0
     clean.load_state_dict(noisy.state_dict())
     cams = ds.cameras(ds.indices("train")[:2])
@@ -352,8 +354,8 @@ def test_density_noise_scales_training_densities_and_leaves_rendering_alone(tiny
     log_ratio = torch.log(a.sigmas / b.sigmas)
     assert log_ratio.numel() > 5000
     assert abs(float(log_ratio.mean())) < 0.05 and abs(float(log_ratio.std()) - 1.0) < 0.05
-    noisy.eval(), clean.eval()
+    noisy.eval()
+    clean.eval()
     torch.testing.assert_close(noisy.render_rays(rays).rgb, clean.render_rays(rays).rgb)
     with pytest.raises(ValueError, match="density_noise"):
-        Trainer(ds, tmp_path / "bad", TrainConfig(method="ngp", max_steps=1, progress=False,
-                                                  options={"density_noise": -1.0}))
+        model("bad", density_noise=-1.0)
