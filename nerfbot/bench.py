@@ -17,6 +17,8 @@ Rerunning resumes: points whose key is already in ``bench.json`` are not run aga
 ``force``. Ratios use a baseline measured in the same sweep: per scene, the first
 configuration in sweep order (first size, method, option values and budget) that has results.
 A resumed sweep mixes runs of several invocations; every run records ``measured_at``.
+``out`` must be new, empty or a bench folder; a folder holding anything else is refused
+(:mod:`nerfbot.data.outputs`).
 """
 
 from __future__ import annotations
@@ -453,16 +455,24 @@ def run_bench(cfg: BenchConfig) -> BenchResult:
     """Run (or resume) the sweep ``cfg`` and write its outputs; see the module docstring.
 
     Raises:
-        BenchError: an unknown method, option, executor or dataset (named in the message),
-            before any point runs.
+        BenchError: an unknown method, option, executor or dataset (named in the message), or
+            an ``out`` that is neither new, empty nor a bench folder (see
+            :mod:`nerfbot.data.outputs`), before any point runs.
     """
     from tqdm.auto import tqdm
+
+    from nerfbot.data.outputs import check_output_folder
 
     validate(cfg)
     executor = make_executor(cfg.executor, address=cfg.address, num_cpus=cfg.ray_num_cpus)
     out = Path(cfg.out)
     sources = classify_data(cfg.data)
+    try:
+        folder = check_output_folder(out, "bench")
+    except FileExistsError as err:
+        raise BenchError(str(err)) from None
     runs, failures = _load_previous(cfg)
+    folder.prepare()
     (out / "runs").mkdir(parents=True, exist_ok=True)
     points = expand_points(cfg, sources)
     todo = [p for p in points if cfg.force or p["key"] not in runs]

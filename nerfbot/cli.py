@@ -9,10 +9,34 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import sys
 from pathlib import Path
 
 log = logging.getLogger("nerfbot")
+
+#: Exit codes: 0 success, 1 a failure inside nerfbot (a bug, or a run that diverged), 2 bad
+#: input (a flag, a file, a folder), 130 interrupted.
+EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 1, 2, 130
+
+
+class UsageError(Exception):
+    """A flag, or a combination of flags, that the command cannot run with."""
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line naming the flag, with exit code 2."""
+
+    def error(self, message: str):
+        self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def one_line(exc: BaseException) -> str:
+    """The message of ``exc`` on one line (an OSError's strerror and file name kept)."""
+    text = str(exc) or type(exc).__name__
+    if isinstance(exc, KeyError) and exc.args:
+        text = str(exc.args[0])
+    return " ".join(part.strip() for part in text.splitlines() if part.strip())
 
 
 # -- helpers ---------------------------------------------------------------------------------
@@ -30,9 +54,13 @@ def parse_option(text: str) -> tuple[str, object]:
 def _parse_background(text: str | None):
     if text is None or text in ("learned", "white", "black"):
         return text
-    parts = [float(v) for v in text.split(",")]
+    try:
+        parts = [float(v) for v in text.split(",")]
+    except ValueError:
+        parts = []
     if len(parts) != 3 or not all(0.0 <= p <= 1.0 for p in parts):
-        raise SystemExit(f"--background: expected learned, white, black or R,G,B in [0, 1], got {text!r}")
+        raise UsageError(f"--background: expected learned, white, black or R,G,B in [0, 1], "
+                         f"got {text!r}")
     return parts
 
 
@@ -46,8 +74,86 @@ def _positive_int(text: str) -> int:
     return value
 
 
-def _floats(text: str) -> tuple[float, ...]:
-    return tuple(float(v) for v in text.split(",") if v.strip())
+#: The longest image side a command renders (pixels); larger requests are refused up front
+#: rather than failing in an allocation.
+MAX_IMAGE_SIDE = 16384
+
+
+def _image_side(text: str) -> int:
+    value = _positive_int(text)
+    if value > MAX_IMAGE_SIDE:
+        raise argparse.ArgumentTypeError(f"an image side of at most {MAX_IMAGE_SIDE} pixels, "
+                                         f"got {text!r}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0.0 < value < math.inf:
+        raise argparse.ArgumentTypeError(f"expected a positive finite number, got {text!r}")
+    return value
+
+
+def _non_negative_float(text: str) -> float:
+    """A number >= 0 (``inf`` allowed)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not value >= 0.0:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
+    return value
+
+
+def _unit_time(text: str) -> float:
+    """A time in [0, 1] (the span of a dynamic capture)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"expected a time in [0, 1], got {text!r}")
+    return value
+
+
+def _non_negative_int(text: str) -> int:
+    """An integer >= 0 (a count, or a random seed: numpy's generators take no negative
+    seeds)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
+    return value
+
+
+def _device(text: str) -> str:
+    """A torch device this machine has ("cpu", "cuda", "cuda:1", ...)."""
+    import torch
+
+    try:
+        device = torch.device(text)
+        torch.empty(0, device=device)
+    except (RuntimeError, AssertionError) as err:  # unknown name, or no such device here
+        reason = str(err).strip().splitlines()[0] if str(err).strip() else "not available"
+        raise argparse.ArgumentTypeError(f"no device {text!r} here ({reason[:120]})")
+    return text
+
+
+def _times(text: str) -> tuple[float, ...]:
+    """``S1,S2,...``: non-negative finite seconds."""
+    try:
+        values = tuple(float(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        values = ()
+    if not values or not all(0.0 <= v < math.inf for v in values):
+        raise argparse.ArgumentTypeError(f"expected comma-separated times in seconds, >= 0, "
+                                         f"got {text!r}")
+    return values
 
 
 def _load_dataset(path, aabb=None, background=None):
@@ -56,11 +162,14 @@ def _load_dataset(path, aabb=None, background=None):
     return load_dataset(path, aabb=aabb, background=background)
 
 
-def _run_data_path(run: Path) -> Path | None:
-    cfg = run / "config.json"
-    if cfg.exists():
-        return Path(json.loads(cfg.read_text())["data"])
-    return None
+def _check_option_names(method: str, options: dict) -> None:
+    """Refuse ``--option`` keys ``method`` does not have (before anything is written)."""
+    from nerfbot.methods import option_names
+
+    unknown = sorted(set(options) - set(option_names(method)))
+    if unknown:
+        raise UsageError(f"--option: method {method!r} has no option(s) {unknown}; known: "
+                         f"{option_names(method)}")
 
 
 # -- commands --------------------------------------------------------------------------------
@@ -72,29 +181,57 @@ def cmd_capture(args) -> int:
 
 
 def cmd_train(args) -> int:
-    from nerfbot.evaluation import evaluate
-    from nerfbot.models import num_params
-    from nerfbot.training import CHECKPOINT, TrainConfig, Trainer, write_json_atomic
+    from nerfbot.data.outputs import check_output_folder
+    from nerfbot.training import CHECKPOINT
 
     auto_goal = args.target_psnr is not None or args.time_budget is not None
     if args.method != "auto" and (auto_goal or args.bench_table is not None):
-        raise SystemExit("nerfbot train: --target-psnr / --time-budget / --bench-table need "
+        raise UsageError("--target-psnr / --time-budget / --bench-table need "
                          "--method auto")
     if args.target_psnr is not None and args.time_budget is not None:
-        raise SystemExit("nerfbot train: give --target-psnr or --time-budget, not both")
+        raise UsageError("give --target-psnr or --time-budget, not both")
     if args.max_steps is None and args.max_seconds is None and not auto_goal:
-        raise SystemExit("nerfbot train: give a budget, --max-steps N and/or --max-seconds S"
+        raise UsageError("give a budget, --max-steps N and/or --max-seconds S"
                          + (" (or, with --method auto, --target-psnr / --time-budget)"
                             if args.method == "auto" else ""))
+    if args.resume and args.overwrite:
+        raise UsageError("give --resume (continue the run in --out) or --overwrite (start it "
+                         "over), not both")
     out = Path(args.out)
-    if (out / CHECKPOINT).exists() and not args.resume:
-        raise SystemExit(f"{out} already holds a run; pass --resume to continue it, or choose "
-                         "another --out")
+    folder = check_output_folder(out, "run", overwrite=args.overwrite, resume=args.resume)
     aabb = None if args.aabb is None else [args.aabb[:3], args.aabb[3:]]
     background = _parse_background(args.background)
     colour = None if background in (None, "learned") else background  # compositing colour
     ds = _load_dataset(args.data, aabb, colour)
-    method, options, max_seconds = args.method, dict(args.option or []), args.max_seconds
+    options = dict(args.option or [])
+    if args.method != "auto":
+        _check_option_names(args.method, options)
+        _train_config(args, args.method, options, args.max_seconds, background).validate()
+    # the run folder exists from here on; a failure before the first checkpoint removes it
+    with folder.writing(keep=lambda: (out / CHECKPOINT).exists()):
+        return _train_into(args, folder.path, ds, options, background)
+
+
+def _train_config(args, method: str, options: dict, max_seconds, background):
+    from nerfbot.training import TrainConfig
+
+    return TrainConfig(method=method, max_steps=args.max_steps,
+                       max_seconds=max_seconds, seed=args.seed, lr=args.lr,
+                       options=options, background=background,
+                       depth_weight=args.depth_weight,
+                       eval_at_seconds=args.eval_at or (),
+                       checkpoint_every_seconds=args.checkpoint_every_seconds,
+                       checkpoint_every_steps=args.checkpoint_every_steps,
+                       device=args.device, progress=not args.no_progress)
+
+
+def _train_into(args, out: Path, ds, options: dict, background) -> int:
+    """The part of ``nerfbot train`` that writes into the run folder ``out``."""
+    from nerfbot.evaluation import evaluate
+    from nerfbot.models import num_params
+    from nerfbot.training import Trainer, write_json_atomic
+
+    method, max_seconds = args.method, args.max_seconds
     if method == "auto":
         from nerfbot.auto import auto_train_config
 
@@ -102,30 +239,30 @@ def cmd_train(args) -> int:
             choice = auto_train_config(ds.manifest, Path(args.data), out, options,
                                        args.target_psnr, args.time_budget, args.bench_table)
         except (ValueError, FileNotFoundError) as err:
-            raise SystemExit(f"nerfbot train --method auto: {err}")
+            raise UsageError(f"--method auto: {err}")
         method, options = choice.method, choice.options
         if choice.budget_seconds is not None:
             max_seconds = choice.budget_seconds
-        out.mkdir(parents=True, exist_ok=True)
-        write_json_atomic(out / "auto.json", choice.to_dict())
         for line in choice.reasons:
             log.info("auto: %s", line)
-    config = TrainConfig(method=method, max_steps=args.max_steps,
-                         max_seconds=max_seconds, seed=args.seed, lr=args.lr,
-                         options=options, background=background,
-                         depth_weight=args.depth_weight,
-                         eval_at_seconds=_floats(args.eval_at) if args.eval_at else (),
-                         device=args.device, progress=not args.no_progress)
+    config = _train_config(args, method, options, max_seconds, background)
 
     def curve_eval(model):
         return {"psnr": evaluate(model, ds, "test", max_images=args.eval_images,
                                  with_ssim=False)["psnr"]}
 
-    trainer = Trainer(ds, out, config, evaluate_fn=curve_eval if args.eval_at else None)
+    scored = bool(ds.splits.get("test"))  # a one-frame dataset has no test frame
+    if not scored:
+        log.warning("%s: no 'test' frame (splits: %s); the run gets no test metrics", ds.root,
+                    ds.split_sizes())
+    trainer = Trainer(ds, out, config,
+                      evaluate_fn=curve_eval if args.eval_at and scored else None)
     if args.resume and trainer.load():
         log.info("resumed %s at step %d (%.1f s trained)", out, trainer.step, trainer.train_seconds)
+    if args.method == "auto":  # after a resume was found consistent with the run
+        write_json_atomic(out / "auto.json", choice.to_dict())
     summary = trainer.train()
-    metrics = evaluate(trainer.model, ds, "test")
+    metrics = evaluate(trainer.model, ds, "test") if scored else {}
     metrics.update(method=method, num_params=num_params(trainer.model), **summary)
     write_json_atomic(out / "metrics.json", metrics, allow_nan=True)
     print(json.dumps(metrics, indent=2))
@@ -145,22 +282,21 @@ def _float_list(text: str) -> list[float]:
 def _run_and_dataset(args):
     """(model, checkpoint info, dataset folder, dataset) of ``args.run`` evaluated on
     ``args.data`` (default: the dataset the run was trained on)."""
+    from nerfbot.data.run_dataset import resolve_run_dataset
     from nerfbot.training import load_model
 
     run = Path(args.run)
     model, info = load_model(run, args.device)
-    data = Path(args.data) if args.data else _run_data_path(run)
-    if data is None:
-        raise SystemExit(f"{run}: no config.json naming the dataset; pass --data DIR")
-    return model, info, data, _load_dataset(data)
+    if args.data:
+        return model, info, Path(args.data), _load_dataset(args.data)
+    data, ds = resolve_run_dataset(run, info["spec"].get("dataset"))
+    return model, info, data, ds
 
 
 def cmd_eval(args) -> int:
     from nerfbot.evaluation import evaluate
     from nerfbot.models import num_params
 
-    if args.downscale < 1:
-        raise ValueError(f"--downscale must be a positive integer, got {args.downscale}")
     model, info, data, ds = _run_and_dataset(args)
     metrics = evaluate(model, ds, args.split, downscale=args.downscale,
                        supersample=args.supersample)
@@ -186,17 +322,21 @@ def cmd_eval(args) -> int:
 def cmd_bake(args) -> int:
     """Bake a trained run into a faster renderer (a run folder of its own)."""
     from nerfbot.baking import write_baked_run
+    from nerfbot.data.identity import dataset_identity
+    from nerfbot.data.outputs import check_output_folder
 
     if (args.cache is None) == (args.octree is None):
-        raise SystemExit("nerfbot bake: give exactly one of --cache NP,ND (fastnerf) and "
+        raise UsageError("give exactly one of --cache NP,ND (fastnerf) and "
                          "--octree DEPTH (plenoctree)")
+    _refuse_source_run(Path(args.run), Path(args.out))
+    check_output_folder(args.out, "baked_run", overwrite=args.overwrite)  # before baking
     model, info, data, ds = _run_and_dataset(args)
     method = info["spec"]["method"]
     if args.cache is not None:
         from nerfbot.fields.fastnerf import bake_cache
 
         if len(args.cache) != 2:
-            raise SystemExit(f"nerfbot bake: --cache wants NP,ND (two integers), got {args.cache}")
+            raise UsageError(f"--cache wants NP,ND (two integers), got {args.cache}")
         baked, spec, extra = bake_cache(model, info["spec"], args.cache[0], args.cache[1],
                                         progress=not args.no_progress)
     else:
@@ -206,9 +346,21 @@ def cmd_bake(args) -> int:
                                          finetune_steps=args.finetune_steps, seed=args.seed,
                                          progress=not args.no_progress)
     extra = {"source_run": str(args.run), "source_method": method, **extra}
-    write_baked_run(baked, spec, info, args.out, data=data, extra=extra)
+    spec = {**spec, "dataset": dataset_identity(ds)}  # the dataset at ``data``, as eval checks
+    write_baked_run(baked, spec, info, args.out, data=data, extra=extra,
+                    overwrite=args.overwrite)
     print(json.dumps(extra | {"out": str(args.out)}))
     return 0
+
+
+def _refuse_source_run(run: Path, out: Path) -> None:
+    """``nerfbot bake RUN --out RUN`` would overwrite the run being baked."""
+    import os
+
+    same = out.exists() and run.exists() and os.path.samefile(out, run)
+    if same or out.absolute() == run.absolute():
+        raise FileExistsError(f"{out}: the run being baked; choose another --out for the baked "
+                              "run")
 
 
 def cmd_estimate_joints(args) -> int:
@@ -239,8 +391,9 @@ def cmd_estimate_joints(args) -> int:
     return 0
 
 
-def _orbit_cameras(model, frames: int, size, data: Path | None):
-    """An orbit around the scene, framed like the training cameras when the dataset is known."""
+def _orbit_cameras(model, frames: int, size, ds):
+    """An orbit around the scene, framed like the training cameras of the dataset ``ds`` when
+    it is known (not None)."""
     import numpy as np
 
     from nerfbot.cameras import Cameras, orbit_poses
@@ -249,9 +402,8 @@ def _orbit_cameras(model, frames: int, size, data: Path | None):
     target = 0.5 * (aabb[0] + aabb[1])
     radius, elevation, fov = 2.0 * float(np.linalg.norm(aabb[1] - aabb[0])), 30.0, 40.0
     width = height = 128
-    if data is not None and data.exists():
-        ds = _load_dataset(data)
-        idx = ds.indices("train")
+    if ds is not None:
+        idx = ds.indices("train") if ds.splits.get("train") else list(range(len(ds)))
         offsets = ds.c2w[idx, :3, 3] - target
         dist = np.linalg.norm(offsets, axis=1)
         radius = float(np.median(dist))
@@ -263,8 +415,26 @@ def _orbit_cameras(model, frames: int, size, data: Path | None):
     return Cameras.pinhole(orbit_poses(target, radius, elevation, frames), fov, width, height)
 
 
-def _render_plan(args, model, info, data):
-    """Cameras and per-image conditions (or None) for ``nerfbot render``."""
+def _render_dataset(args, run: Path, info, needed: bool):
+    """The dataset ``nerfbot render`` takes its views from: ``--data``, else the one the run
+    was trained on (found and checked by :func:`resolve_run_dataset`). When it is not
+    ``needed`` (an orbit) and cannot be found, None: the orbit is framed from the bounds."""
+    from nerfbot.data.run_dataset import resolve_run_dataset
+
+    if args.data:
+        return _load_dataset(args.data)
+    try:
+        return resolve_run_dataset(run, info["spec"].get("dataset"))[1]
+    except FileNotFoundError as err:
+        if needed:
+            raise
+        log.warning("%s; framing the orbit from the scene bounds", one_line(err))
+        return None
+
+
+def _render_plan(args, model, info, ds):
+    """Cameras and per-image conditions (or None) for ``nerfbot render`` (``ds``: the dataset
+    of :func:`_render_dataset`)."""
     import numpy as np
     import torch
 
@@ -272,6 +442,11 @@ def _render_plan(args, model, info, data):
     from nerfbot.query import sweep_conditions
 
     conditioning = Conditioning.from_dict(info["spec"].get("conditioning"))
+    for flag, given, kind in (("--time", args.time is not None, "time"),
+                              ("--joints", bool(args.joints), "joints")):
+        if given and conditioning.kind != kind:
+            raise UsageError(f"{flag}: {args.run} is a {conditioning.kind} run, not conditioned "
+                             f"on {kind}")
     fixed = None
     if args.time is not None or args.joints:
         fixed = conditioning.vector(args.time, args.joints)
@@ -281,18 +456,14 @@ def _render_plan(args, model, info, data):
                              "one is static")
         conds = sweep_conditions(conditioning, args.sweep, args.frames, fixed)
         views = max(args.sweep_views, 1)
-        cams = _orbit_cameras(model, views, args.size, data)
+        cams = _orbit_cameras(model, views, args.size, ds)
         return cams[torch.as_tensor(np.arange(len(conds)) * views // len(conds))], conds
     if args.path == "orbit":
-        cams = _orbit_cameras(model, args.frames, args.size, data)
+        cams = _orbit_cameras(model, args.frames, args.size, ds)
         if fixed is None and not conditioning.is_static:
             fixed = conditioning.vector(0.0, {}) if conditioning.kind == "time" else \
                 conditioning.vector(None, {})
         return cams, [fixed] * len(cams)
-    if data is None:
-        raise SystemExit(f"{args.run}: no dataset known; pass --data DIR to render its "
-                         f"{args.path} views")
-    ds = _load_dataset(data)
     idx = ds.indices(args.path)
     per_frame = frame_conditions(ds, conditioning)
     conds = [fixed if fixed is not None else (None if per_frame is None else per_frame[i].tolist())
@@ -316,7 +487,7 @@ def _render_depth_query(args, run: Path) -> tuple[str, float | None, str]:
     if mode != "threshold":
         return mode, None, source
     if threshold is None:
-        raise SystemExit(f"nerfbot render: threshold depth needs --threshold M (density, "
+        raise UsageError(f"threshold depth needs --threshold M (density, "
                          f"1/m; {auto} gives none)")
     return mode, as_thresholds(threshold)[0], source
 
@@ -332,26 +503,39 @@ def _depth_of(img: dict, mode: str):
     return z, img["opacity"] > 0.5
 
 
+#: The video files ``nerfbot render --out`` writes; any other --out is a folder of images.
+VIDEO_SUFFIXES = (".mp4", ".avi")
+
+
 def cmd_render(args) -> int:
     import numpy as np
 
+    from nerfbot.data.outputs import check_output_file, check_output_folder
     from nerfbot.export import colorize_depth, save_image, to_uint8, write_video
     from nerfbot.query import render_image
     from nerfbot.training import load_model
     from tqdm.auto import tqdm
 
-    run = Path(args.run)
+    run, out = Path(args.run), Path(args.out)
+    if args.size is not None and len(args.size) > 2:
+        raise UsageError(f"--size: give N or W H, got {len(args.size)} numbers")
+    video = out.suffix.lower() in VIDEO_SUFFIXES
+    if out.suffix and not video and not out.is_dir():
+        raise UsageError(f"--out {out}: nerfbot writes videos as {', '.join(VIDEO_SUFFIXES)}; "
+                         f"not {out.suffix} (a folder name without an extension gets images)")
+    folder = None if video else check_output_folder(out, "render", overwrite=args.overwrite)
+    if video:
+        check_output_file(out, overwrite=args.overwrite)
     mode, threshold, source = _render_depth_query(args, run)
     model, info = load_model(run, args.device)
-    data = Path(args.data) if args.data else _run_data_path(run)
-    cams, conds = _render_plan(args, model, info, data)
-    out = Path(args.out)
+    ds = _render_dataset(args, run, info, needed=args.path != "orbit" and not args.sweep)
+    cams, conds = _render_plan(args, model, info, ds)
     thresholds = [threshold] if mode == "threshold" else []
     images = (render_image(model, cams, i, cond=conds[i], supersample=args.supersample,
                            thresholds=thresholds)
               for i in range(len(cams)))
     images = tqdm(images, total=len(cams), desc="render", disable=args.no_progress)
-    if out.suffix.lower() in (".mp4", ".avi"):
+    if video:
         def frames():
             for img in images:
                 if args.what == "rgb":
@@ -362,13 +546,14 @@ def cmd_render(args) -> int:
                     yield to_uint8(np.repeat(img["opacity"][..., None], 3, -1))
         write_video(out, frames(), args.fps)
     else:
-        out.mkdir(parents=True, exist_ok=True)
-        for i, img in enumerate(images):
-            z, valid = _depth_of(img, mode)
-            save_image(out / f"rgb_{i:04d}.png", img["rgb"])
-            save_image(out / f"depth_{i:04d}.png", colorize_depth(z, valid))
-            save_image(out / f"opacity_{i:04d}.png", np.repeat(img["opacity"][..., None], 3, -1))
-            np.save(out / f"depth_{i:04d}.npy", z.astype(np.float32))
+        with folder.writing():
+            for i, img in enumerate(images):
+                z, valid = _depth_of(img, mode)
+                save_image(out / f"rgb_{i:04d}.png", img["rgb"])
+                save_image(out / f"depth_{i:04d}.png", colorize_depth(z, valid))
+                save_image(out / f"opacity_{i:04d}.png",
+                           np.repeat(img["opacity"][..., None], 3, -1))
+                np.save(out / f"depth_{i:04d}.npy", z.astype(np.float32))
     what = f"a {args.sweep} sweep" if args.sweep else f"{args.path} views"
     depth = mode + (f" (m = {threshold:g} /m)" if threshold is not None else "")
     print(f"wrote {len(cams)} images of {what} to {out}; depth: {depth}, from {source}")
@@ -379,7 +564,8 @@ def cmd_demo(args) -> int:
     from nerfbot.demo import run_demo
 
     metrics = run_demo(Path(args.out), seconds=args.seconds, size=args.size, views=args.views,
-                       test_views=args.test_views, seed=args.seed, progress=not args.no_progress)
+                       test_views=args.test_views, seed=args.seed, progress=not args.no_progress,
+                       overwrite=args.overwrite)
     print(json.dumps(metrics, indent=2))
     return 0
 
@@ -391,6 +577,8 @@ def _joint_values(text: str) -> dict[str, float]:
         try:
             out[name.strip()] = float(value)
         except ValueError:
+            sep = ""
+        if sep and not math.isfinite(out[name.strip()]):
             sep = ""
         if not sep or not name.strip():
             raise argparse.ArgumentTypeError(f"expected NAME=VALUE, got {item!r}")
@@ -454,7 +642,7 @@ def cmd_bench(args) -> int:
 def build_parser() -> argparse.ArgumentParser:
     from nerfbot.methods import METHODS
 
-    parser = argparse.ArgumentParser(prog="nerfbot", description=__doc__.splitlines()[0])
+    parser = OneLineParser(prog="nerfbot", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -470,10 +658,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="; ".join(f"{k}: {v.description}" for k, v in METHODS.items())
                    + "; auto: model only what the scene manifest says it needs (see "
                      "--target-psnr / --time-budget)")
-    p.add_argument("--target-psnr", type=float, default=None, metavar="DB",
+    p.add_argument("--target-psnr", type=_positive_float, default=None, metavar="DB",
                    help="with --method auto: train for the shortest budget that reaches this "
                         "test PSNR (from --bench-table, or a short built-in sweep)")
-    p.add_argument("--time-budget", type=float, default=None, metavar="S",
+    p.add_argument("--time-budget", type=_positive_float, default=None, metavar="S",
                    help="with --method auto: the best configuration that trains within S s")
     p.add_argument("--bench-table", type=Path, default=None,
                    help="a `nerfbot bench` output (bench.json or its folder) to choose from")
@@ -481,13 +669,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-steps", type=int, default=None, help="step budget")
     p.add_argument("--max-seconds", type=float, default=None,
                    help="training-loop time budget in seconds (loading and evaluation excluded)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=_non_negative_int, default=0)
     p.add_argument("--lr", type=float, default=None, help="learning rate (default: the method's)")
     p.add_argument("--depth-weight", type=float, default=0.0, metavar="W",
                    help="depth supervision from the dataset's depth maps (DS-NeRF style, for "
                         "RGB-D captures): weight of the L1 depth error in scene-cube diagonals "
                         "(default 0: RGB only)")
-    p.add_argument("--resume", action="store_true", help="continue the run in --out")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the run in --out (with the same data, method, options, "
+                        "bounds, background and seed; the budgets may change)")
+    p.add_argument("--checkpoint-every-seconds", type=_non_negative_float, default=60.0,
+                   metavar="S", help="write a checkpoint at least every S s of training "
+                                     "(default 60; inf: only at the end)")
+    p.add_argument("--checkpoint-every-steps", type=_positive_int, default=None, metavar="N",
+                   help="also write a checkpoint after every N-th step (default: none)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="start over in --out when it holds an earlier run (its files are "
+                        "deleted; a folder holding files nerfbot did not write is still refused)")
     p.add_argument("--aabb", type=float, nargs=6, default=None,
                    metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
                    help="scene bounds in metres (overrides the manifest and the camera estimate)")
@@ -496,11 +694,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "the compositing colour for RGBA ones)")
     p.add_argument("--option", action="append", type=parse_option, metavar="KEY=VALUE",
                    help="method option, e.g. log2_hashmap_size=19 (repeatable)")
-    p.add_argument("--eval-at", default=None, metavar="S1,S2,...",
+    p.add_argument("--eval-at", type=_times, default=None, metavar="S1,S2,...",
                    help="record test PSNR at these training times (s), e.g. 30,60,120,180")
-    p.add_argument("--eval-images", type=int, default=None, metavar="N",
+    p.add_argument("--eval-images", type=_positive_int, default=None, metavar="N",
                    help="learning-curve points use the first N test images (default: all)")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", type=_device, default="cpu")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=cmd_train)
 
@@ -509,7 +707,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", type=Path, default=None,
                    help="dataset folder (default: the one the run was trained on)")
     p.add_argument("--split", default="test")
-    p.add_argument("--downscale", type=int, default=1, metavar="K",
+    p.add_argument("--downscale", type=_positive_int, default=1, metavar="K",
                    help="evaluate at 1/K resolution: cameras scaled by 1/K, ground truth "
                         "area-averaged (the multiscale protocol; default 1)")
     p.add_argument("--supersample", type=_positive_int, default=None, metavar="S",
@@ -522,24 +720,27 @@ def build_parser() -> argparse.ArgumentParser:
                    help="density thresholds of the sweep, 1/m (default 0.5 ... 1000)")
     p.add_argument("--plot", type=Path, default=None,
                    help="with --depth-sweep: write the sweep as a PNG plot here")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", type=_device, default="cpu")
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("bake", help="bake a trained run into a faster renderer: a FastNeRF "
                                     "cache (--cache) or a PlenOctree (--octree)")
     p.add_argument("run", type=Path, help="trained run folder (fastnerf or plenoctree)")
-    p.add_argument("--out", required=True, type=Path, help="run folder for the baked renderer")
+    p.add_argument("--out", required=True, type=Path,
+                   help="run folder for the baked renderer (new or empty; not RUN)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace --out when it holds an earlier baked run")
     p.add_argument("--cache", type=_int_list, default=None, metavar="NP,ND",
                    help="FastNeRF cache: position outputs on an NP^3 grid (occupied cells "
                         "only), direction outputs on an ND x ND grid")
-    p.add_argument("--octree", type=int, default=None, metavar="DEPTH",
+    p.add_argument("--octree", type=_positive_int, default=None, metavar="DEPTH",
                    help="PlenOctree: octree of this depth (leaf size = cube / 2^DEPTH)")
-    p.add_argument("--finetune-steps", type=int, default=0, metavar="N",
+    p.add_argument("--finetune-steps", type=_non_negative_int, default=0, metavar="N",
                    help="with --octree: fine-tune the octree leaves on the training images")
     p.add_argument("--data", type=Path, default=None,
                    help="dataset folder (default: the one the run was trained on)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--seed", type=_non_negative_int, default=0)
+    p.add_argument("--device", type=_device, default="cpu")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=cmd_bake)
 
@@ -549,14 +750,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("run", type=Path)
     p.add_argument("--data", type=Path, default=None, help="dataset (default: the run's)")
     p.add_argument("--split", default="test")
-    p.add_argument("--every", type=int, default=1, metavar="K",
+    p.add_argument("--every", type=_positive_int, default=1, metavar="K",
                    help="use every K-th image of the split (e.g. one view per configuration)")
-    p.add_argument("--max-images", type=int, default=None)
-    p.add_argument("--steps", type=int, default=None,
+    p.add_argument("--max-images", type=_positive_int, default=None)
+    p.add_argument("--steps", type=_positive_int, default=None,
                    help="gradient steps per start (default: JointEstimateConfig.steps, 60)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=_non_negative_int, default=0)
     p.add_argument("--json", action="store_true")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", type=_device, default="cpu")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=cmd_estimate_joints)
 
@@ -564,15 +765,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("run", type=Path)
     p.add_argument("--path", default="orbit", choices=("orbit", "test", "train"))
     p.add_argument("--out", required=True, type=Path,
-                   help="video file (.mp4/.avi) or a folder for rgb/depth/opacity images")
+                   help="video file (.mp4/.avi) or a folder for rgb/depth/opacity images "
+                        "(new or empty)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing video file, or the images of an earlier render "
+                        "folder")
     p.add_argument("--what", default="rgb", choices=("rgb", "depth", "opacity"),
                    help="what a video shows")
-    p.add_argument("--frames", type=int, default=60, help="orbit frames")
-    p.add_argument("--fps", type=float, default=24.0)
+    p.add_argument("--frames", type=_positive_int, default=60,
+                   help="orbit frames, or images of a --sweep (default 60)")
+    p.add_argument("--fps", type=_positive_float, default=24.0)
     p.add_argument("--supersample", type=_positive_int, default=None, metavar="S",
                    help="S x S rays per pixel for colour (default: what the run was trained "
                         "with; 1 renders S^2 + 1 times fewer rays)")
-    p.add_argument("--size", type=int, nargs="+", default=None, metavar="N",
+    p.add_argument("--size", type=_image_side, nargs="+", default=None, metavar="N",
                    help="orbit image size N or W H (default: the training size)")
     p.add_argument("--depth-mode", default=None, choices=("expected", "median", "threshold"),
                    help="depth images (z-depth; .npy in metres, NaN where a threshold is never "
@@ -581,10 +787,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threshold", type=float, default=None, metavar="M",
                    help="density threshold of --depth-mode threshold (1/m, Dex-NeRF)")
     p.add_argument("--data", type=Path, default=None)
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", type=_device, default="cpu")
     p.add_argument("--no-progress", action="store_true")
     cond = p.add_argument_group("dynamic and articulated runs")
-    cond.add_argument("--time", type=float, default=None, metavar="T",
+    cond.add_argument("--time", type=_unit_time, default=None, metavar="T",
                       help="render at time T in [0, 1] (orbit; test/train views use their own)")
     cond.add_argument("--joints", type=_joint_values, default=None, metavar="NAME=V,...",
                       help="render at these joint positions (radians / metres; others at the "
@@ -592,18 +798,21 @@ def build_parser() -> argparse.ArgumentParser:
     cond.add_argument("--sweep", default=None, metavar="time|JOINT",
                       help="a video over time, or over one joint's whole range (--frames "
                            "images), seen from one orbit camera (or --sweep-views cameras)")
-    cond.add_argument("--sweep-views", type=int, default=1, metavar="K",
+    cond.add_argument("--sweep-views", type=_positive_int, default=1, metavar="K",
                       help="--sweep: the camera moves through K orbit positions (default 1: "
                            "a fixed camera)")
     p.set_defaults(func=cmd_render)
 
     p = sub.add_parser("demo", help="capture the tabletop, train ngp, evaluate, write renders")
-    p.add_argument("--out", type=Path, default=Path("nerfbot-demo"))
-    p.add_argument("--seconds", type=float, default=60.0, help="training budget (s)")
-    p.add_argument("--size", type=int, default=128)
-    p.add_argument("--views", type=int, default=60)
-    p.add_argument("--test-views", type=int, default=10)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path, default=Path("nerfbot-demo"),
+                   help="demo folder, new or empty (default nerfbot-demo)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace --out when it holds an earlier demo")
+    p.add_argument("--seconds", type=_positive_float, default=60.0, help="training budget (s)")
+    p.add_argument("--size", type=_image_side, default=128)
+    p.add_argument("--views", type=_positive_int, default=60)
+    p.add_argument("--test-views", type=_positive_int, default=10)
+    p.add_argument("--seed", type=_non_negative_int, default=0)
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=cmd_demo)
 
@@ -639,28 +848,31 @@ def build_parser() -> argparse.ArgumentParser:
                         "(hash-table size), render_steps=128,256 (samples per ray), "
                         "grid_resolution=32,64 (occupancy grid); a method sweeps only the "
                         "options it has")
-    p.add_argument("--repeats", type=int, default=1, help="runs per point; tables show medians")
-    p.add_argument("--seed", type=int, default=0,
+    p.add_argument("--repeats", type=_positive_int, default=1,
+                   help="runs per point; tables show medians")
+    p.add_argument("--seed", type=_non_negative_int, default=0,
                    help="repeat r trains with seed SEED+r; also the capture rig's seed")
-    p.add_argument("--views", type=int, default=60, help="train views of built-in captures")
-    p.add_argument("--test-views", type=int, default=10, help="test views of built-in captures")
-    p.add_argument("--eval-images", type=int, default=None, metavar="N",
+    p.add_argument("--views", type=_positive_int, default=60,
+                   help="train views of built-in captures")
+    p.add_argument("--test-views", type=_positive_int, default=10,
+                   help="test views of built-in captures")
+    p.add_argument("--eval-images", type=_positive_int, default=None, metavar="N",
                    help="evaluate on the first N test images (default all)")
     p.add_argument("--no-chamfer", action="store_true",
                    help="skip meshing and the Chamfer distance to the MuJoCo geometry")
-    p.add_argument("--mesh-resolution", type=int, default=128,
+    p.add_argument("--mesh-resolution", type=_positive_int, default=128,
                    help="marching-cubes cells along the longest side of the content bounds")
-    p.add_argument("--mesh-threshold", type=float, default=None, metavar="SIGMA",
+    p.add_argument("--mesh-threshold", type=_positive_float, default=None, metavar="SIGMA",
                    help="surface density, 1/m (default: where one step of the default marcher, "
                         "cube diagonal / 256, is 50%% opaque; about 80 for the tabletop)")
-    p.add_argument("--chamfer-points", type=int, default=100_000,
+    p.add_argument("--chamfer-points", type=_positive_int, default=100_000,
                    help="surface samples per mesh for the Chamfer distance")
     p.add_argument("--executor", choices=("local", "ray"), default="local",
                    help="local: one subprocess per point, one at a time (default); ray: points "
                         "as Ray tasks, each taking a whole node (pip install 'nerfbot[ray]')")
     p.add_argument("--address", default=None,
                    help="Ray cluster address (default: start a local Ray)")
-    p.add_argument("--ray-num-cpus", type=int, default=None, metavar="N",
+    p.add_argument("--ray-num-cpus", type=_positive_int, default=None, metavar="N",
                    help="CPUs each Ray task reserves (default: all CPUs of the largest node)")
     p.add_argument("--force", action="store_true", help="rerun points already in bench.json")
     p.add_argument("--keep-checkpoints", action="store_true",
@@ -679,18 +891,22 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(levelname)s %(name)s: %(message)s")
-    from nerfbot.data.errors import DatasetError
-
     try:
         return args.func(args)
-    except (DatasetError, FileNotFoundError, FileExistsError, ValueError) as exc:
-        if args.verbose and isinstance(exc, ValueError):
-            raise  # bad input, or a bug: --verbose shows where
-        print(f"nerfbot {args.command}: error: {exc}", file=sys.stderr)
-        return 2
     except KeyboardInterrupt:
         print(f"nerfbot {args.command}: interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
+    except (UsageError, ValueError, OSError) as exc:  # DatasetError is a ValueError
+        if args.verbose:
+            raise
+        print(f"nerfbot {args.command}: error: {one_line(exc)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except Exception as exc:  # a bug, or a run that failed (e.g. diverged): not the input's fault
+        if args.verbose:
+            raise
+        print(f"nerfbot {args.command}: error: {type(exc).__name__}: {one_line(exc)} "
+              "(a failure inside nerfbot; -v shows where)", file=sys.stderr)
+        return EXIT_FAILURE
 
 
 if __name__ == "__main__":

@@ -15,6 +15,9 @@ from typing import Optional
 import numpy as np
 import torch
 
+from nerfbot.data.errors import DatasetError
+from nerfbot.data.spec import joint_range
+
 KINDS = ("static", "time", "joints")
 
 
@@ -103,24 +106,41 @@ class Conditioning:
         return [float(joints.get(n, 0.5 * (lo + hi))) for n, (lo, hi) in zip(self.names, self.ranges)]
 
 
+def _source(dataset) -> str:
+    """The dataset's (first) transforms file, for messages; its folder when unknown."""
+    files = (getattr(dataset, "extras", None) or {}).get("json_files") or []
+    return str(files[0]) if files else str(dataset.root)
+
+
 def dataset_conditioning(dataset) -> Conditioning:
     """The conditioning of a :class:`~nerfbot.data.dataset.Dataset`: time when its frames carry
-    ``time``, joints when they carry ``joints``, static otherwise."""
+    ``time``, joints when they carry ``joints``, static otherwise.
+
+    Raises:
+        DatasetError: naming the transforms file and manifest field, when a joint range is not
+            ``[lo, hi]`` with finite lo <= hi, or ``moving_joints`` names a joint the frames do
+            not give.
+    """
     manifest = dataset.manifest or {}
     if dataset.times is not None:
         return Conditioning("time", ("time",), ((0.0, 1.0),))
     if dataset.joints is None:
         return Conditioning()
+    where = f"{_source(dataset)}: scene"
     info = manifest.get("joint_info") or {}
-    names = list(manifest.get("moving_joints") or []) or sorted(dataset.joints[0])
-    names = [n for n in names if n in dataset.joints[0]]
+    carried = dataset.joints[0]
+    names = list(manifest.get("moving_joints") or []) or sorted(carried)
+    missing = [n for n in names if n not in carried]
+    if missing:
+        raise DatasetError(f"{where}.moving_joints: {', '.join(map(repr, missing))} not given by "
+                           f"the frames (their joints: {', '.join(sorted(carried))})")
     ranges = []
     for n in names:
-        limits = (info.get(n) or {}).get("range")
+        limits = joint_range((info.get(n) or {}).get("range"), f"{where}.joint_info.{n}.range")
         if limits is None:
             values = [float(j[n]) for j in dataset.joints]
             limits = (min(values), max(values))
-        ranges.append((float(limits[0]), float(limits[1])))
+        ranges.append(limits)
     return Conditioning("joints", tuple(names), tuple(ranges),
                         {n: info[n] for n in names if n in info},
                         list(manifest.get("part_bounds") or []))
@@ -135,7 +155,7 @@ def frame_conditions(dataset, conditioning: Conditioning) -> Optional[np.ndarray
     missing = [(i, n) for i, j in enumerate(dataset.joints) for n in conditioning.names if n not in j]
     if missing:
         i, n = missing[0]
-        raise ValueError(f"{dataset.root}: frame {dataset.file_paths[i]} has no joint '{n}' "
-                         "(every frame must give every moving joint)")
+        raise DatasetError(f"{_source(dataset)}: frame {dataset.file_paths[i]}: joints: no "
+                           f"'{n}' (every frame must give every moving joint)")
     return np.array([[float(j[n]) for n in conditioning.names] for j in dataset.joints],
                     dtype=np.float32)

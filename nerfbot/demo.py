@@ -15,22 +15,35 @@ log = logging.getLogger(__name__)
 
 
 def run_demo(out: Path, seconds: float = 60.0, size: int = 128, views: int = 60,
-             test_views: int = 10, seed: int = 0, progress: bool = True) -> dict:
-    """Run the demo into ``out``; returns the metrics dict (also written to metrics.json)."""
+             test_views: int = 10, seed: int = 0, progress: bool = True,
+             overwrite: bool = False) -> dict:
+    """Run the demo into ``out``; returns the metrics dict (also written to metrics.json).
+
+    ``out`` must be new, empty, or (with ``overwrite``) an earlier demo folder holding nothing
+    else (:mod:`nerfbot.data.outputs`); a demo that fails removes what it wrote."""
+    from nerfbot.data.outputs import check_output_folder
+
+    folder = check_output_folder(out, "demo", overwrite=overwrite)
+    with folder.writing():
+        return _demo_into(folder.path, seconds, size, views, test_views, seed, progress)
+
+
+def _demo_into(out: Path, seconds: float, size: int, views: int, test_views: int, seed: int,
+               progress: bool) -> dict:
+    """The demo, written into the prepared folder ``out``."""
     import sims  # noqa: F401  (MUJOCO_GL before mujoco)
     from sims.capture import capture
     from sims.cli import default_rig
     from sims.rigs import make_test_rig
 
     from nerfbot.data import load_dataset
+    from nerfbot.data.outputs import check_output_folder
     from nerfbot.evaluation import depth_valid_mask, evaluate
     from nerfbot.export import colorize_depth, comparison_sheet, save_image
     from nerfbot.models import num_params
     from nerfbot.query import render_image
     from nerfbot.training import TrainConfig, Trainer, write_json_atomic
 
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     data_dir = out / "data"
     rig = default_rig("tabletop", count=views, width=size, height=size, seed=seed)
     log.info("capturing the tabletop: %d train + %d test views at %dx%d", views, test_views, size, size)
@@ -40,7 +53,8 @@ def run_demo(out: Path, seconds: float = 60.0, size: int = 128, views: int = 60,
     checkpoints = tuple(s for s in (15, 30, 60, 120, 180, 300) if s < seconds) + (seconds,)
     config = TrainConfig(method="ngp", max_seconds=seconds, seed=seed, progress=progress,
                          eval_at_seconds=checkpoints)
-    trainer = Trainer(ds, out / "run", config, evaluate_fn=lambda m: {
+    run = check_output_folder(out / "run", "run").prepare()
+    trainer = Trainer(ds, run, config, evaluate_fn=lambda m: {
         "psnr": evaluate(m, ds, "test", with_ssim=False)["psnr"]})
     summary = trainer.train()
 

@@ -11,6 +11,9 @@ Pixel classes (from the segmentation and the scene manifest):
 - ``transparent``: pixels whose first surface is a transparent geom;
 - ``opaque_objects``: pixels of the declared objects that are not transparent;
 - ``scene``: every pixel with finite ground-truth depth inside the scene bounds.
+
+Pixels the dataset's masks mark invalid belong to no class
+(:func:`~nerfbot.evaluation.depth_valid_mask`).
 """
 
 from __future__ import annotations

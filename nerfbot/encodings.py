@@ -201,6 +201,11 @@ def _n_workers() -> int:
     return numba.get_num_threads()
 
 
+#: The largest hash table an option may ask for: 2^24 rows per level is 2 GB of parameters at
+#: 16 levels x 2 features (and twice that again for Adam's moments).
+MAX_LOG2_HASHMAP_SIZE = 24
+
+
 @dataclass
 class HashGridConfig:
     """The hash-grid fields of every field config built on :class:`HashEncoding` (ngp,
@@ -219,6 +224,20 @@ class HashGridConfig:
     """Cells per axis of the finest level."""
     backend: str = "numba"
     """Hash-encoding implementation: "numba" (fast CPU) or "torch" (reference twin)."""
+
+    def __post_init__(self):
+        for name in ("n_levels", "n_features", "min_res"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"option {name}: must be >= 1, got {getattr(self, name)}")
+        if not 0 <= self.log2_hashmap_size <= MAX_LOG2_HASHMAP_SIZE:
+            raise ValueError(f"option log2_hashmap_size: must be 0 to {MAX_LOG2_HASHMAP_SIZE} "
+                             f"(2^{MAX_LOG2_HASHMAP_SIZE} rows per level), got "
+                             f"{self.log2_hashmap_size}")
+        if self.max_res < self.min_res:
+            raise ValueError(f"option max_res: must be >= min_res ({self.min_res}), got "
+                             f"{self.max_res}")
+        if self.backend not in ("numba", "torch"):
+            raise ValueError(f"option backend: 'numba' or 'torch', got {self.backend!r}")
 
     def hash_encoding(self, seed: int | None = None) -> "HashEncoding":
         """A :class:`HashEncoding` with these settings."""
@@ -259,7 +278,27 @@ class HashEncoding(nn.Module):
     def out_dim(self) -> int:
         return self.n_levels * self.n_features
 
+    def check_table(self, shape, where: str = "table") -> None:
+        """ValueError unless a table of ``shape`` fits this encoding's levels: (offsets[-1], F)
+        rows and features. The kernels index rows up to ``offsets[-1]`` unchecked, so a smaller
+        table would be read and written out of bounds."""
+        rows = int(self._offsets_np[-1])
+        if tuple(shape) != (rows, self.n_features):
+            have = " x ".join(str(int(n)) for n in shape) or "a scalar"
+            raise ValueError(
+                f"{where}: hash table is {have} (rows x features), but the encoding's "
+                f"{self.n_levels} levels need {rows} x {self.n_features}; it was made with other "
+                "hash-grid options (e.g. log2_hashmap_size)")
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        table = state_dict.get(prefix + "table")
+        if table is not None:
+            self.check_table(table.shape, prefix + "table")
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.table.shape != (int(self._offsets_np[-1]), self.n_features):
+            self.check_table(self.table.shape)  # never let the kernels see a mismatched table
         # NaN positions must not reach the kernels: int(NaN) is -2^63 there, an out-of-bounds
         # table row (read by the forward pass and the position gradient, written by the table
         # gradient). The twin gives NaN features for them with in-bounds indexing.

@@ -10,6 +10,7 @@ import torch
 
 from nerfbot.conditioning import dataset_conditioning, frame_conditions
 from nerfbot.data.dataset import Dataset
+from nerfbot.data.errors import DatasetError
 from nerfbot.metrics import depth_errors, psnr, ssim
 from nerfbot.models import Model
 from nerfbot.query import render_image
@@ -30,8 +31,9 @@ def _dilate(mask: np.ndarray, px: int) -> np.ndarray:
 
 
 def depth_valid_mask(dataset: Dataset, i: int) -> np.ndarray | None:
-    """Pixels of frame ``i`` whose ground-truth depth is finite and whose 3D point lies inside
-    the scene bounds; None when the frame has no depth."""
+    """(H, W) bool, the pixels of frame ``i`` whose ground-truth depth is finite, whose 3D point
+    lies inside the scene bounds, and which the frame's mask keeps (:meth:`Dataset.valid_mask`);
+    None when the frame has no depth."""
     depth = dataset.depths[i]
     if depth is None:
         return None
@@ -42,8 +44,9 @@ def depth_valid_mask(dataset: Dataset, i: int) -> np.ndarray | None:
     t = torch.where(finite, z, torch.zeros_like(z)) / rays.z_per_t
     pts = rays.origins + rays.directions * t[:, None]
     lo, hi = torch.as_tensor(dataset.aabb, dtype=torch.float32)
-    inside = ((pts >= lo) & (pts <= hi)).all(-1) & finite
-    return inside.reshape(depth.shape).numpy()
+    inside = (((pts >= lo) & (pts <= hi)).all(-1) & finite).reshape(depth.shape).numpy()
+    mask = dataset.valid_mask(i)
+    return inside if mask is None else inside & mask
 
 
 def object_geom_ids(dataset: Dataset) -> np.ndarray | None:
@@ -80,6 +83,30 @@ def downscale_depth(depth: np.ndarray, valid: np.ndarray, width: int, height: in
     return np.where(ok, total / np.maximum(cover, 1e-12), np.nan).astype(np.float32), ok
 
 
+def pixel_mask(dataset: Dataset, i: int, width: int, height: int) -> np.ndarray | None:
+    """(height, width) bool, the pixels of frame ``i`` to score at that resolution: its mask
+    (:meth:`Dataset.valid_mask`), and below full resolution the low-resolution pixels whose
+    whole block is valid (so no masked colour leaks into a score); None when all are valid."""
+    mask = dataset.valid_mask(i)
+    if mask is None:
+        return None
+    if mask.shape != (height, width):
+        mask = downscale_area(mask.astype(np.float32), width, height) >= 1.0 - 1e-4
+    return mask
+
+
+def eval_indices(dataset: Dataset, split: str, max_images: int | None = None) -> list[int]:
+    """The first ``max_images`` frames of ``split``; :class:`DatasetError` naming the dataset
+    and the split when there is none to evaluate (a missing or empty split)."""
+    indices = dataset.indices(split)[:max_images]
+    if not indices:
+        why = ("is empty" if not dataset.indices(split)
+               else f"gives no frame with max_images={max_images}")
+        raise DatasetError(f"{dataset.root}: the '{split}' split {why}; nothing to evaluate "
+                           f"(splits: {dataset.split_sizes()})")
+    return indices
+
+
 class _DepthErrorSum:
     """Running absolute / squared depth error over many images."""
 
@@ -114,6 +141,12 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
     moves, a small part of each image; None without segmentation or objects);
     render_ms_per_image (median over images); num_images; downscale; supersample.
 
+    Pixels the dataset's masks mark invalid (``mask_path``, or outside an undistorted image)
+    are left out of every score: psnr takes the mean squared error over the valid pixels, ssim
+    weights each window's statistics over its valid pixels and averages the SSIM map over the
+    valid pixels (:func:`~nerfbot.metrics.ssim`); frames without a valid pixel count in
+    num_images and render time only.
+
     Colour is rendered with ``supersample`` x ``supersample`` rays per pixel (None: the
     model's own :attr:`~nerfbot.models.Model.supersample`), depth from the pixel centres
     (:func:`~nerfbot.query.render_image`).
@@ -123,12 +156,16 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
     (:func:`downscale_area`), depth compared on low-resolution pixels whose K x K block is
     entirely valid, against the block's mean depth (:func:`downscale_depth`); object masks
     (a low-resolution pixel belongs to the objects if any of its block does, then dilated) for
-    psnr_objects, and blocks entirely on objects for the object depth errors.
+    psnr_objects, and blocks entirely on objects for the object depth errors; a low-resolution
+    pixel is valid only when its whole block is (:func:`pixel_mask`).
+
+    Raises:
+        DatasetError: the split is missing or empty, or every pixel of its frames is masked out.
     """
     if isinstance(downscale, bool) or not isinstance(downscale, (int, np.integer)) or downscale < 1:
         raise ValueError(f"downscale must be a positive integer, got {downscale!r}")
     downscale = int(downscale)
-    indices = dataset.indices(split)[:max_images]
+    indices = eval_indices(dataset, split, max_images)
     cams = dataset.cameras(indices)
     if downscale > 1:
         cams = cams.scaled(1.0 / downscale)
@@ -145,15 +182,19 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
         times.append(time.perf_counter() - t0)
         h, w = out["rgb"].shape[:2]
         gt = downscale_area(dataset.image_float(i), w, h)
-        psnrs.append(psnr(out["rgb"], gt))
-        if with_ssim:
-            ssims.append(ssim(out["rgb"], gt))
+        scored = pixel_mask(dataset, i, w, h)
+        if scored is None or scored.any():
+            psnrs.append(psnr(out["rgb"], gt, scored))
+            if with_ssim:
+                ssims.append(ssim(out["rgb"], gt, scored))
         seg = dataset.segmentations[i]
         on_obj = None
         if objects is not None and seg is not None:
             cover = downscale_area(np.isin(seg, objects).astype(np.float32), w, h)
             on_obj = cover >= 1.0 - 1e-4  # pixels entirely on objects (all of them when K = 1)
             mask = _dilate(cover > 0, OBJECT_MASK_DILATION_PX)
+            if scored is not None:
+                mask &= scored
             obj_sq += float(((out["rgb"][mask] - gt[mask]).astype(np.float64) ** 2).sum())
             obj_n += 3 * int(mask.sum())
         valid = depth_valid_mask(dataset, i)
@@ -167,8 +208,11 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
                 on_objects = valid & on_obj
                 obj_px.add(out["z_depth"], depth, on_objects)
                 obj_med.add(out["median_z_depth"], depth, on_objects)
+    if not psnrs:
+        raise DatasetError(f"{dataset.root}: every pixel of the {len(indices)} '{split}' frame(s) "
+                           "is masked out; nothing to evaluate")
     result = {
-        "psnr": float(np.mean(psnrs)) if psnrs else float("nan"),
+        "psnr": float(np.mean(psnrs)),
         "ssim": float(np.mean(ssims)) if ssims else float("nan"),
         "psnr_objects": (None if not obj_n else float("inf") if obj_sq == 0
                          else -10.0 * math.log10(obj_sq / obj_n)),

@@ -6,6 +6,7 @@ the registry.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields, replace
 from typing import Callable, Optional
 
@@ -69,10 +70,47 @@ class BakeRecipe:
     bake: Callable[..., tuple]
 
 
+def _typed(name: str, value, default):
+    """``value`` of option ``name`` as the type of its ``default`` (an integral float is an
+    int, an int a float, a list a tuple); ValueError naming the option otherwise. Tuple
+    options may also come as a string or a number, which their config parses."""
+    def bad(kind):
+        return ValueError(f"option {name}: expected {kind} (the default is {default!r}), got "
+                          f"{value!r}")
+
+    def number(v):
+        return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+    if default is None:
+        return value
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise bad("true or false")
+        return value
+    if isinstance(default, int):
+        if not number(value) or value != int(value):
+            raise bad("an integer")
+        return int(value)
+    if isinstance(default, float):
+        if not number(value):
+            raise bad("a finite number")
+        return float(value)
+    if isinstance(default, str):
+        if not isinstance(value, str):
+            raise bad("a string")
+        return value
+    if isinstance(default, (tuple, list)) and isinstance(value, (tuple, list)):
+        if not all(number(v) for v in value):
+            raise bad("a list of finite numbers")
+        return type(default)(value)
+    return value  # other spellings (e.g. "16,32" for a tuple) are the config's to parse
+
+
 def _apply(config, options: dict):
-    """Dataclass ``config`` with the ``options`` whose keys match its field names."""
+    """Dataclass ``config`` with the ``options`` whose keys match its field names, each checked
+    against the type of its default (the config's own checks then run on the new values)."""
     names = {f.name for f in fields(config)}
-    picked = {k: v for k, v in options.items() if k in names}
+    picked = {k: _typed(k, v, getattr(config, k)) for k, v in options.items() if k in names}
     return replace(config, **picked)
 
 

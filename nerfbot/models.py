@@ -164,6 +164,19 @@ class OccupancyModelConfig:
     centres, S x S per pixel after it. With a fixed number of samples per batch, S x S rays
     per pixel mean S^2 times fewer pixels per step, which slows the early, coarse phase."""
 
+    def __post_init__(self):
+        for name in ("grid_resolution", "grid_update_every", "render_steps", "samples_per_batch",
+                     "inference_round_samples", "supersample"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"option {name}: must be >= 1, got {getattr(self, name)}")
+        for name in ("grid_warmup_steps", "grid_threshold", "cone_angle", "distortion_weight",
+                     "density_noise"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"option {name}: must be >= 0, got {getattr(self, name)}")
+        for name in ("early_stop_transmittance", "supersample_from"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"option {name}: must be in [0, 1], got {getattr(self, name)}")
+
 
 class OccupancyModel(Model):
     """Occupancy-grid ray marching over packed samples (Instant-NGP's renderer)."""

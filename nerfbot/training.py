@@ -4,9 +4,9 @@ steps or seconds, atomic checkpoints and exact resume."""
 from __future__ import annotations
 
 import copy
+import json
 import logging
 import math
-import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -17,16 +17,19 @@ import torch
 from tqdm.auto import tqdm
 
 from nerfbot.cameras import Rays, pixel_rays
+from nerfbot.checkpoints import (CHECKPOINT, RESUME_REQUIRED, CheckpointError, load_checkpoint,
+                                 plain, remove_stale_temporaries, save_checkpoint)
 from nerfbot.conditioning import Conditioning, dataset_conditioning, frame_conditions
 from nerfbot.data.dataset import Dataset
+from nerfbot.data.errors import DatasetError
+from nerfbot.data.identity import dataset_identity, identity_mismatch
+from nerfbot.data.run_dataset import run_data_fields
 from nerfbot.data.writers import write_json_atomic
 from nerfbot.methods import build_model, get_method
 from nerfbot.models import Model, pixel_mean, resize_like_state_dict
 from nerfbot.rendering import RenderOutput
 
 log = logging.getLogger(__name__)
-
-CHECKPOINT = "checkpoint.pt"
 
 
 @dataclass
@@ -47,7 +50,10 @@ class TrainConfig:
     background: Optional[object] = None
     """"learned", "white", "black" or an RGB triple; None: what the dataset says."""
     checkpoint_every_seconds: float = 60.0
-    """Write a checkpoint at least this often (training time)."""
+    """Write a checkpoint at least this often (training time; inf: only at the end)."""
+    checkpoint_every_steps: Optional[int] = None
+    """Also write a checkpoint after every step that is a multiple of this (None: no step
+    cadence). Checkpoints at fixed steps make interrupted runs reproducible."""
     eval_at_seconds: tuple = ()
     """Training times (s) at which to pause the clock and record test PSNR (a learning curve)."""
     eval_at_steps: tuple = ()
@@ -72,10 +78,51 @@ class TrainConfig:
             raise ValueError(f"max_steps must be >= 0, got {self.max_steps}")
         if self.max_seconds is not None and not self.max_seconds >= 0:
             raise ValueError(f"max_seconds must be >= 0, got {self.max_seconds}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"seed must be an integer >= 0, got {self.seed!r}")
         if self.lr is not None and not 0.0 < self.lr < math.inf:
             raise ValueError(f"lr must be positive and finite, got {self.lr}")
         if not 0.0 <= self.depth_weight < math.inf:
             raise ValueError(f"depth_weight must be >= 0 and finite, got {self.depth_weight}")
+        if not self.checkpoint_every_seconds >= 0:
+            raise ValueError(f"checkpoint_every_seconds must be >= 0, got "
+                             f"{self.checkpoint_every_seconds}")
+        if self.checkpoint_every_steps is not None and self.checkpoint_every_steps < 1:
+            raise ValueError(f"checkpoint_every_steps must be >= 1, got "
+                             f"{self.checkpoint_every_steps}")
+
+
+class ValidPixels:
+    """Uniform draws among the valid pixels of a flat (P,) validity mask, stored compactly.
+
+    Holds whichever is shorter: the valid pixel indices (a draw is a lookup), or the invalid
+    ones as ``skip[j] = invalid[j] - j``, the count of valid pixels before the j-th invalid one
+    (the r-th valid pixel is then ``r + #{j : skip[j] <= r}``). Either costs 4 bytes per entry
+    (8 beyond 2^31 pixels), so an undistortion border of a few percent costs almost nothing.
+    """
+
+    def __init__(self, valid: np.ndarray, device="cpu"):
+        valid = np.asarray(valid, dtype=bool).reshape(-1)
+        self.count = int(valid.sum())
+        """V, the number of valid pixels."""
+        dtype = np.int32 if valid.size < 2**31 else np.int64
+        invalid = np.flatnonzero(~valid)
+        self.valid = self.skip = None
+        if invalid.size <= self.count:
+            skip = invalid - np.arange(invalid.size)
+            self.skip = torch.from_numpy(skip.astype(dtype)).to(device)
+        else:
+            self.valid = torch.from_numpy(np.flatnonzero(valid).astype(dtype)).to(device)
+
+    def __len__(self) -> int:
+        return self.count
+
+    def pixel(self, rank: torch.Tensor) -> torch.Tensor:
+        """(n,) int64 pixel indices of the valid pixels of (n,) ranks in [0, V)."""
+        if self.valid is not None:
+            return self.valid[rank].long()
+        r = rank.to(self.skip.dtype)
+        return rank.long() + torch.searchsorted(self.skip, r, right=True)
 
 
 class PixelBank:
@@ -83,12 +130,16 @@ class PixelBank:
 
     Colours are stored flat as uint8 (P, 3); a pixel index maps to (frame, row, column) through
     per-frame offsets, so mixed image sizes work and rays are built only for drawn pixels.
+    Pixels the dataset's masks mark invalid (``Dataset.masks``: ``mask_path`` or outside an
+    undistorted image) are never drawn; without masks, draws are exactly those of an unmasked
+    bank (one ``torch.randint`` over all pixels).
     """
 
     def __init__(self, dataset: Dataset, indices: list[int], device="cpu",
                  conditions: Optional[np.ndarray] = None):
         if not indices:
-            raise ValueError(f"{dataset.root}: the training split is empty")
+            raise DatasetError(f"{dataset.root}: the training split is empty; training needs "
+                               f"at least one frame in 'train' (splits: {dataset.split_sizes()})")
         self.device = torch.device(device)
         self.frames = torch.as_tensor(indices, dtype=torch.long)
         self.cameras = dataset.cameras(indices).to(device)
@@ -97,9 +148,11 @@ class PixelBank:
         counts = torch.as_tensor([dataset.images[i].shape[0] * dataset.images[i].shape[1]
                                   for i in indices], dtype=torch.long)
         self.offsets = torch.cat([torch.zeros(1, dtype=torch.long), torch.cumsum(counts, 0)]).to(device)
+        self.valid = self._valid_pixels(dataset, indices)
+        """The drawable pixels when some frame has a mask, else None (every pixel)."""
         self.depths: Optional[torch.Tensor] = None
-        """(P,) float32 z-depth of every pixel (NaN: unknown or outside the bounds), loaded by
-        :meth:`load_depths` for depth supervision."""
+        """(P,) float32 z-depth of every pixel (NaN: unknown, outside the bounds or masked out),
+        loaded by :meth:`load_depths` for depth supervision."""
         self._dataset, self._indices = dataset, list(indices)
         self.last_pixels: Optional[torch.Tensor] = None
         """(n,) pixel indices of the last :meth:`sample`."""
@@ -107,16 +160,37 @@ class PixelBank:
             torch.as_tensor(conditions[indices], dtype=torch.float32, device=device)
         """(frames, C) condition vector of each frame (time or joints), None when static."""
 
+    def _valid_pixels(self, dataset: Dataset, indices: list[int]) -> Optional[ValidPixels]:
+        masks = [dataset.valid_mask(i) for i in indices]
+        if all(m is None for m in masks):
+            return None
+        flat = np.concatenate([np.ones(dataset.images[i].shape[:2], bool).reshape(-1) if m is None
+                               else np.asarray(m, bool).reshape(-1)
+                               for i, m in zip(indices, masks)])
+        valid = ValidPixels(flat, self.device)
+        if not len(valid):
+            raise DatasetError(f"{dataset.root}: every pixel of the {len(indices)} training "
+                               "frame(s) is masked out (mask_path, or outside the undistorted "
+                               "image); nothing to train on")
+        return valid
+
     def __len__(self) -> int:
         return int(self.offsets[-1])
 
     def mean_color(self) -> torch.Tensor:
-        """(3,) mean colour of all pixels, in [0, 1]."""
-        return self.pixels.float().mean(0) / 255.0
+        """(3,) mean colour of all valid pixels, in [0, 1]."""
+        if self.valid is None:
+            return self.pixels.float().mean(0) / 255.0
+        rank = torch.arange(len(self.valid), device=self.device)
+        total = torch.zeros(3, dtype=torch.float64, device=self.device)
+        for chunk in rank.split(1 << 20):
+            total += self.pixels[self.valid.pixel(chunk)].double().sum(0)
+        return (total / len(self.valid) / 255.0).float()
 
     def load_depths(self) -> None:
-        """Keep the depth of every pixel (for depth supervision); ValueError naming the frames
-        without depth."""
+        """Keep the depth of every pixel (for depth supervision), NaN where
+        :func:`~nerfbot.evaluation.depth_valid_mask` is False (masked pixels included);
+        ValueError naming the frames without depth."""
         from nerfbot.evaluation import depth_valid_mask
 
         missing = [self._dataset.file_paths[i] for i in self._indices
@@ -134,12 +208,16 @@ class PixelBank:
     def sample(self, n: int, generator: torch.Generator, supersample: int = 1
                ) -> tuple[Rays, torch.Tensor, torch.Tensor]:
         """``n`` random pixels: their rays, colours (n, 3) float32 in [0, 1], frame slots (n,).
-        Their pixel indices are kept in :attr:`last_pixels`.
+        Their pixel indices are kept in :attr:`last_pixels`; masked-out pixels are never drawn.
 
         With ``supersample`` S = 1 the rays go through the pixel centres: (n,) rays. With S > 1
         each pixel gets S x S rays, one through a uniformly random point of each cell of an
         S x S grid over the pixel (stratified): (n * S * S,) rays, pixel after pixel."""
-        p = torch.randint(len(self), (n,), generator=generator).to(self.device)
+        if self.valid is None:
+            p = torch.randint(len(self), (n,), generator=generator).to(self.device)
+        else:
+            p = self.valid.pixel(torch.randint(len(self.valid), (n,), generator=generator)
+                                 .to(self.device))
         self.last_pixels = p
         slot = torch.searchsorted(self.offsets[1:], p, right=True)
         local = p - self.offsets[slot]
@@ -167,25 +245,111 @@ def learning_rate(base: float, final_factor: float, progress: float) -> float:
     return base * final_factor ** min(max(progress, 0.0), 1.0)
 
 
-def save_atomic(obj, path: Path) -> None:
-    """torch.save to a temporary file in the same folder, then rename over ``path``."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
-
-
 def model_spec(config: TrainConfig, dataset: Dataset) -> dict:
-    """Everything needed to rebuild the model without the dataset (stored in checkpoints)."""
+    """Everything needed to rebuild the model without the dataset (stored in checkpoints), and
+    the identity of the dataset it is trained on
+    (:func:`nerfbot.data.identity.dataset_identity`)."""
     background = config.background if config.background is not None else dataset.background
     return {"method": config.method, "aabb": np.asarray(dataset.aabb, float).tolist(),
             "background": background, "options": dict(config.options), "seed": config.seed,
-            "conditioning": dataset_conditioning(dataset).to_dict()}
+            "conditioning": dataset_conditioning(dataset).to_dict(),
+            "dataset": dataset_identity(dataset)}
 
 
 def build_from_spec(spec: dict, device="cpu") -> Model:
     return build_model(spec["method"], spec["aabb"], spec["background"], spec["options"],
                        spec["seed"], Conditioning.from_dict(spec.get("conditioning"))).to(device)
+
+
+#: Relative tolerance of the bounds comparison on resume (float64 JSON round trips).
+AABB_RTOL = 1e-9
+
+
+def _shown(value) -> str:
+    return value if isinstance(value, str) else json.dumps(plain(value))
+
+
+def _canonical(value) -> str:
+    """JSON text of plain data, for comparisons that ignore list / tuple / numpy types."""
+    return json.dumps(plain(value), sort_keys=True)
+
+
+def _same_numbers(a, b, rtol: float = AABB_RTOL) -> bool:
+    """Two numeric arrays of the same shape equal within ``rtol`` of their magnitude."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    if a.shape != b.shape:
+        return False
+    scale = max(1.0, float(np.abs(b).max(initial=0.0)))
+    return bool(np.all(np.abs(a - b) <= rtol * scale))
+
+
+def _same_background(a, b) -> bool:
+    if isinstance(a, str) or isinstance(b, str) or a is None or b is None:
+        return a == b
+    return _same_numbers(a, b)
+
+
+def _option_differences(requested: dict, stored: dict) -> list[str]:
+    out = []
+    for key in sorted(set(requested) | set(stored)):
+        if key in requested and key in stored:
+            if _canonical(requested[key]) != _canonical(stored[key]):
+                out.append(f"option {key}={_shown(requested[key])}, but the run was made with "
+                           f"{_shown(stored[key])}")
+        elif key in requested:
+            out.append(f"option {key}={_shown(requested[key])}, but the run was made without it "
+                       "(the method's default)")
+        else:
+            out.append(f"no option {key}, but the run was made with {key}="
+                       f"{_shown(stored[key])}")
+    return out
+
+
+def spec_differences(stored: dict, requested: dict, dataset: Dataset) -> list[str]:
+    """One phrase per field in which the ``requested`` spec of a resume differs from the
+    ``stored`` spec of the run: method, options, bounds (within :data:`AABB_RTOL`), background,
+    conditioning, seed and the identity of ``dataset`` (skipped for runs that stored none).
+    Budgets, evaluation times and checkpoint cadence are not part of a spec."""
+    out = []
+    if requested["method"] != stored["method"]:
+        out.append(f"method {requested['method']!r}, but the run was made with "
+                   f"{stored['method']!r}")
+        return out  # options and the rest mean other things for another method
+    out += _option_differences(requested["options"], stored["options"])
+    if not _same_numbers(requested["aabb"], stored["aabb"]):
+        shown = [" ".join(f"{v:g}" for v in np.ravel(s["aabb"])) for s in (requested, stored)]
+        out.append(f"bounds --aabb {shown[0]}, but the run was made with {shown[1]}")
+    if not _same_background(requested["background"], stored["background"]):
+        out.append(f"background {_shown(requested['background'])}, but the run was made with "
+                   f"{_shown(stored['background'])}")
+    now, then = (Conditioning.from_dict(s.get("conditioning")) for s in (requested, stored))
+    if _canonical(now.to_dict()) != _canonical(then.to_dict()):
+        shown = [c.kind + "".join(f" {n}" for n in c.names) for c in (now, then)]
+        if shown[0] == shown[1]:
+            shown[0] += " (other ranges or joint kinematics)"
+        out.append(f"conditioning {shown[0]}, but the run was made with {shown[1]}")
+    if requested["seed"] != stored["seed"]:
+        out.append(f"seed {requested['seed']}, but the run was made with {stored['seed']}")
+    other = identity_mismatch(stored.get("dataset"), dataset)
+    if other is not None:
+        out.append(f"another dataset ({dataset.root}: {other})")
+    return out
+
+
+def _load_model_state(model: Model, ckpt: dict, path: Path) -> None:
+    """Resize ``model``'s tensors to the checkpoint's and load them; CheckpointError naming
+    ``path`` when they do not fit the model its spec builds."""
+    try:
+        resize_like_state_dict(model, ckpt["model"])
+        model.load_state_dict(ckpt["model"])
+    except (ValueError, RuntimeError, KeyError, AttributeError) as err:
+        raise CheckpointError(f"{path}: the model tensors do not fit method "
+                              f"{ckpt['spec']['method']!r}: {_first_line(err)}") from None
+
+
+def _first_line(err: BaseException) -> str:
+    text = str(err).strip()
+    return text.splitlines()[0] if text else type(err).__name__
 
 
 #: Rays of the throwaway step that compiles a method's kernels before the training clock starts.
@@ -226,7 +390,8 @@ class Trainer:
     """Trains one model on one dataset into a run folder.
 
     The run folder holds ``config.json``, ``checkpoint.pt`` (model, optimiser, random state,
-    step and training time; written atomically) and ``curve.json`` (test PSNR over time).
+    step and training time; written durably, the one before kept as ``checkpoint.prev.pt``:
+    :mod:`nerfbot.checkpoints`) and ``curve.json`` (test PSNR over time).
     """
 
     def __init__(self, dataset: Dataset, out_dir, config: TrainConfig,
@@ -272,29 +437,55 @@ class Trainer:
                 "config": asdict(self.config)}
 
     def save(self) -> Path:
-        path = self.out / CHECKPOINT
-        save_atomic(self.state(), path)
+        """Write the run's checkpoint durably (:func:`nerfbot.checkpoints.save_checkpoint`;
+        the one before is kept as ``checkpoint.prev.pt``) and ``curve.json``."""
+        path = save_checkpoint(self.state(), self.out / CHECKPOINT)
         write_json_atomic(self.out / "curve.json", self.curve, allow_nan=True)
         return path
 
     def load(self, path: Optional[Path] = None) -> bool:
-        """Restore from ``path`` (default: the run's checkpoint); False if there is none."""
+        """Resume from ``path`` (default: the run's checkpoint; its previous checkpoint when it
+        is missing or damaged); False if there is none.
+
+        The checkpoint's spec is compared with this trainer's first (:func:`spec_differences`):
+        any difference is a ValueError naming the run folder and each field, and nothing is
+        changed, in memory or on disk. Then the model is built from the run's spec, takes the
+        checkpoint's tensors, and stale temporary files of interrupted writes are removed."""
         path = Path(path) if path else self.out / CHECKPOINT
-        if not path.exists():
+        found = load_checkpoint(path, RESUME_REQUIRED)
+        if found is None:
             return False
-        ckpt = torch.load(path, map_location=self.device, weights_only=False)
-        if ckpt["spec"]["method"] != self.config.method:
-            raise ValueError(f"{path}: checkpoint is method {ckpt['spec']['method']!r}, "
-                             f"not {self.config.method!r}")
-        resize_like_state_dict(self.model, ckpt["model"])
-        self.model.load_state_dict(ckpt["model"])
-        self.optimizer = self._make_optimizer()  # over the (possibly resized) parameters
-        self.optimizer.load_state_dict(ckpt["optimizer"])
+        ckpt, used = found
+        differences = spec_differences(ckpt["spec"], self.spec, self.dataset)
+        if differences:
+            raise ValueError(f"{self.out}: --resume with {'; '.join(differences)}; resume with "
+                             "the run's options or train into a new --out")
+        spec = {**self.spec, **ckpt["spec"], "dataset": self.spec["dataset"]}
+        if _canonical(spec) != _canonical(self.spec):  # equal within tolerances: the run's wins
+            self._rebuild_model(spec)
+        _load_model_state(self.model, ckpt, used)
+        try:
+            self.optimizer = self._make_optimizer()  # over the (possibly resized) parameters
+            self.optimizer.load_state_dict(ckpt["optimizer"])
+            self.generator.set_state(ckpt["generator"])
+        except (ValueError, RuntimeError, KeyError, TypeError) as err:
+            raise CheckpointError(f"{used}: optimiser or random state does not fit the model: "
+                                  f"{_first_line(err)}") from None
         self.step, self.train_seconds = ckpt["step"], ckpt["train_seconds"]
         self.n_rays, self.curve = ckpt["n_rays"], ckpt["curve"]
         self.last_samples = ckpt["last_samples"]
-        self.generator.set_state(ckpt["generator"])
+        remove_stale_temporaries(path)
         return True
+
+    def _rebuild_model(self, spec: dict) -> None:
+        """Build the model from ``spec`` as :meth:`__init__` does (the optimiser is left to
+        the caller)."""
+        self.spec = spec
+        torch.manual_seed(spec["seed"])
+        self.model = build_from_spec(spec, self.device)
+        self.model.init_mean_color(self.bank.mean_color())
+        aabb = self.model.aabb
+        self.depth_scale = float((aabb[1] - aabb[0]).max()) * math.sqrt(3.0)
 
     # -- loop --------------------------------------------------------------------------------
     def progress(self) -> float:
@@ -345,10 +536,11 @@ class Trainer:
         """Run until a budget is spent. ``on_step(trainer)`` is called after every step (tests
         use it to simulate interruptions). On KeyboardInterrupt a checkpoint is written first."""
         c = self.config
+        remove_stale_temporaries(self.out / CHECKPOINT)
         warm_up_step(self.model, self.bank, self.step, self.progress())
-        write_json_atomic(self.out / "config.json", {"train": asdict(c),
-                                                     "data": str(self.dataset.root),
-                                                     "spec": self.spec}, allow_nan=True)
+        write_json_atomic(self.out / "config.json", {
+            "train": asdict(c), **run_data_fields(self.dataset.root, self.out),
+            "spec": self.spec}, allow_nan=True)
         pending_t = sorted(s for s in c.eval_at_seconds if s > self.train_seconds)
         pending_s = sorted(s for s in c.eval_at_steps if s > self.step)
         total = c.max_steps if c.max_steps is not None else None
@@ -402,8 +594,10 @@ class Trainer:
                 pending_s = [s for s in pending_s if s > self.step]
                 if due:  # one record even when a slow step passed several requested times
                     self._record()
-                if self.train_seconds - last_ckpt >= c.checkpoint_every_seconds:
-                    self.save()
+                every = c.checkpoint_every_steps
+                if not self.done() and (self.train_seconds - last_ckpt >= c.checkpoint_every_seconds
+                                        or (every is not None and self.step % every == 0)):
+                    self.save()  # the last one is written after the loop
                     last_ckpt = self.train_seconds
         except KeyboardInterrupt:
             bar.close()
@@ -418,14 +612,23 @@ class Trainer:
 
 
 def load_model(run_dir, device="cpu") -> tuple[Model, dict]:
-    """Load a trained model from a run folder; returns (model in eval mode, checkpoint info)."""
+    """Load a trained model from a run folder; returns (model in eval mode, checkpoint info).
+
+    The checkpoint is read as tensors and plain data only (a crafted file is refused, never
+    run); a damaged ``checkpoint.pt`` falls back to ``checkpoint.prev.pt``
+    (:func:`nerfbot.checkpoints.load_checkpoint`). FileNotFoundError when the run has no
+    checkpoint, CheckpointError (a ValueError) when it is unusable."""
     path = Path(run_dir) / CHECKPOINT
-    if not path.exists():
+    found = load_checkpoint(path)
+    if found is None:
         raise FileNotFoundError(f"{path}: no checkpoint (is {run_dir} a training run folder?)")
-    ckpt = torch.load(path, map_location=device, weights_only=False)
-    model = build_from_spec(ckpt["spec"], device)
-    resize_like_state_dict(model, ckpt["model"])
-    model.load_state_dict(ckpt["model"])
+    ckpt, used = found
+    try:
+        model = build_from_spec(ckpt["spec"], device)
+    except (ValueError, KeyError, TypeError) as err:
+        raise CheckpointError(f"{used}: cannot build the model of its spec: "
+                              f"{_first_line(err)}") from None
+    _load_model_state(model, ckpt, used)
     model.eval()
     info = {k: ckpt[k] for k in ("spec", "step", "train_seconds", "curve", "config")}
     return model, info

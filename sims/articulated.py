@@ -37,6 +37,7 @@ from typing import Optional, Sequence
 import mujoco
 import numpy as np
 
+from nerfbot.data.outputs import check_output_folder
 from sims.capture import (View, _scene_source, _warn_view_dependent_lighting, check_views,
                           write_views)
 from sims.joints import (JOINT_TYPES, body_rest_poses, joint_bodies, joint_id, joint_info,
@@ -194,7 +195,8 @@ def capture_articulated(scene: str | Path, rig: SequenceRig, out_dir: Path,
                         outside_fraction: float = DEFAULT_OUTSIDE_FRACTION,
                         joints: Optional[Sequence[str]] = None, fmt: str = "nerfstudio",
                         manifest: bool = True, progress: bool = True,
-                        sensor: Optional[DepthSensorModel] = None) -> Path:
+                        sensor: Optional[DepthSensorModel] = None,
+                        overwrite: bool = False) -> Path:
     """Render ``scene`` at ``configs`` training and ``test_configs`` test joint configurations.
 
     Args:
@@ -202,11 +204,12 @@ def capture_articulated(scene: str | Path, rig: SequenceRig, out_dir: Path,
         rig: the cameras (:func:`sims.sequence.sequence_rig`): ``rig.views_per_step`` views per
             configuration (monocular: 1), fresh for every configuration; train and test
             configurations draw their views from independent random streams.
-        out_dir: dataset folder to create (or replace, if it holds a previous dataset).
+        out_dir: dataset folder to create (missing or empty), or with ``overwrite`` to
+            replace (a dataset captured there before).
         configs, test_configs, train_range, margin, outside_fraction: see
             :func:`config_schedule` (``rig.seed`` seeds it).
         joints: the joints to vary (default :func:`articulated_joints`).
-        fmt, manifest, progress, sensor: as :func:`sims.capture.capture`.
+        fmt, manifest, progress, sensor, overwrite: as :func:`sims.capture.capture`.
 
     Returns:
         ``out_dir`` (absolute). Frames are written training configurations first, then test
@@ -221,6 +224,7 @@ def capture_articulated(scene: str | Path, rig: SequenceRig, out_dir: Path,
             FileExistsError / RuntimeError as :func:`sims.capture.capture`.
     """
     model, data, name = load_sequence_scene(scene, "articulated")
+    check_output_folder(out_dir, "dataset", overwrite=overwrite)  # before the long part
     _warn_view_dependent_lighting(model)
     names = list(joints) if joints is not None else articulated_joints(model)
     schedule = config_schedule(model, names, configs, test_configs, train_range, margin,
@@ -270,7 +274,8 @@ def capture_articulated(scene: str | Path, rig: SequenceRig, out_dir: Path,
 
     out = write_views(model, data, views, out_dir, rig.width, rig.height, rig.fov_deg, meta,
                       fmt=fmt, manifest=manifest, progress=progress, sensor=sensor,
-                      extra_files=lambda root: np.savez(root / STATE_FILE, **states))
+                      extra_files=lambda root: np.savez(root / STATE_FILE, **states),
+                      overwrite=overwrite)
     log.info("wrote %d views of '%s' at %d training and %d test configurations to %s",
              len(views), name, configs, test_configs, out)
     return out

@@ -2,8 +2,9 @@
 
 The dataset appears atomically: everything is written into a hidden sibling folder which is
 renamed into place only once complete, so ``out_dir`` is either absent/unchanged (failure) or a
-whole dataset (success). An existing ``out_dir`` is replaced only if it is empty or looks like a
-dataset (has a ``transforms*.json``), never an arbitrary folder.
+whole dataset (success). ``out_dir`` follows :mod:`nerfbot.data.outputs`: it must be missing or
+empty, or a dataset nerfbot captured there before, replaced only with ``overwrite``
+(``--overwrite``) and only if it holds nothing else; a user's folder or dataset is never touched.
 
 :func:`write_views` renders and writes any list of :class:`View` (pose, split, optional scene
 state, ``time`` and ``joints``) this way; :func:`capture` (static scenes), :mod:`sims.dynamic`
@@ -26,6 +27,8 @@ import mujoco
 import numpy as np
 from tqdm import tqdm
 
+from nerfbot.data.outputs import check_output_folder, write_marker
+from nerfbot.data.spec import MAX_CAMERA_COORDINATE_M
 from nerfbot.data.writers import FORMATS, open_writer
 from sims.camera import CaptureCamera, nearest_rigid
 from sims.manifest import scene_manifest
@@ -36,22 +39,14 @@ from sims.scene import builtin_scenes, load_capture_model, parse_generated, reso
 log = logging.getLogger(__name__)
 
 
-def _looks_like_dataset(path: Path) -> bool:
-    return any(path.glob("transforms*.json"))
-
-
-def _check_destination(out_dir: Path) -> None:
-    """Refuse to overwrite anything but an empty folder or a previous dataset."""
-    if out_dir.exists():
-        if not out_dir.is_dir():
-            raise FileExistsError(f"{out_dir} exists and is not a folder")
-        if any(out_dir.iterdir()) and not _looks_like_dataset(out_dir):
-            raise FileExistsError(f"{out_dir} exists and is not a dataset (no transforms*.json); "
-                                  "refusing to replace it")
+def _check_destination(out_dir: Path, overwrite: bool) -> None:
+    """FileExistsError unless ``out_dir`` may receive a dataset (:mod:`nerfbot.data.outputs`)."""
+    check_output_folder(out_dir, "dataset", overwrite=overwrite)
 
 
 def _move_into_place(tmp: Path, out_dir: Path) -> None:
-    """Rename the finished ``tmp`` folder to ``out_dir``, replacing an old dataset there."""
+    """Rename the finished ``tmp`` folder to ``out_dir``, replacing an empty folder or an old
+    dataset there (checked by :func:`_check_destination`)."""
     if not out_dir.exists():
         os.rename(tmp, out_dir)
         return
@@ -104,16 +99,25 @@ class View:
 
 
 def check_views(views: Sequence[View]) -> None:
-    """Validate every view's pose (``ValueError`` naming the view), before anything is written."""
+    """Validate every view's pose (``ValueError`` naming the view), before anything is written:
+    a rigid transform, and a camera within the coordinates a dataset may hold
+    (:data:`~nerfbot.data.spec.MAX_CAMERA_COORDINATE_M`; a scene framed from farther away is
+    not in metres, or too large)."""
     for view in views:
-        nearest_rigid(view.pose, view.where)
+        pose = nearest_rigid(view.pose, view.where)
+        far = float(np.abs(pose[:3, 3]).max())
+        if not far <= MAX_CAMERA_COORDINATE_M:
+            raise ValueError(f"{view.where}: the camera would stand {far:.3g} m from the origin, "
+                             f"beyond the {MAX_CAMERA_COORDINATE_M:g} m a dataset may hold (is "
+                             "the scene in metres?)")
 
 
 def write_views(model: mujoco.MjModel, data: mujoco.MjData, views: Sequence[View],
                 out_dir: Path, width: int, height: int, fov_deg: float, meta: dict,
                 fmt: str = "nerfstudio", manifest: bool = True, progress: bool = True,
                 sensor: Optional[DepthSensorModel] = None,
-                extra_files: Optional[Callable[[Path], None]] = None) -> Path:
+                extra_files: Optional[Callable[[Path], None]] = None,
+                overwrite: bool = False) -> Path:
     """Render ``views`` of the compiled capture model and write them atomically to ``out_dir``.
 
     Args:
@@ -127,6 +131,7 @@ def write_views(model: mujoco.MjModel, data: mujoco.MjData, views: Sequence[View
         fmt, progress, sensor: as :func:`capture`.
         extra_files: called with the (temporary) dataset folder before it is moved into place,
             to add files of its own.
+        overwrite: replace a dataset captured at ``out_dir`` before (never anything else).
 
     Returns:
         ``out_dir`` as an absolute Path.
@@ -144,7 +149,7 @@ def write_views(model: mujoco.MjModel, data: mujoco.MjData, views: Sequence[View
         meta["depth_sensor"] = sensor.to_dict()
 
     out_dir = Path(out_dir).expanduser().absolute()
-    _check_destination(out_dir)
+    _check_destination(out_dir, overwrite)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = out_dir.with_name(f".{out_dir.name}.partial-{uuid.uuid4().hex[:8]}")
     tmp.mkdir()
@@ -174,7 +179,8 @@ def write_views(model: mujoco.MjModel, data: mujoco.MjData, views: Sequence[View
         writer.finish(meta if manifest else None)
         if extra_files is not None:
             extra_files(tmp)
-        _check_destination(out_dir)
+        write_marker(tmp, "dataset")
+        _check_destination(out_dir, overwrite)  # again: the folder may have changed meanwhile
         _move_into_place(tmp, out_dir)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -185,20 +191,22 @@ def write_views(model: mujoco.MjModel, data: mujoco.MjData, views: Sequence[View
 def capture(scene: str | Path, rig: RigConfig, test_rig: Optional[RigConfig], out_dir: Path,
             size: Optional[int | Sequence[int]] = None, fmt: str = "nerfstudio",
             manifest: bool = True, progress: bool = True,
-            sensor: Optional[DepthSensorModel] = None) -> Path:
+            sensor: Optional[DepthSensorModel] = None, overwrite: bool = False) -> Path:
     """Render ``rig`` (train split) and ``test_rig`` (test split) views of ``scene`` to ``out_dir``.
 
     Args:
         scene: built-in scene name (e.g. "tabletop") or path to an MJCF file.
         rig, test_rig: camera rigs (see :mod:`sims.rigs`); ``test_rig`` may be None. Both must
             share image size and field of view (the formats store one camera).
-        out_dir: dataset folder to create (or replace, if it holds a previous dataset).
+        out_dir: dataset folder to create (missing or empty), or with ``overwrite`` to replace
+            (a dataset captured there before).
         size: image size N or (W, H) overriding both rigs' sizes; None keeps the rigs' sizes.
         fmt: "nerfstudio" (``transforms.json``) or "blender" (``transforms_{split}.json``).
         manifest: write the scene manifest as the top-level ``scene`` object.
         progress: show a progress bar.
         sensor: also write each view's simulated depth-sensor reading (``sensor_depth``, see
             :mod:`sims.sensor`); the manifest records the model under ``depth_sensor``.
+        overwrite: replace a dataset captured at ``out_dir`` before.
 
     Returns:
         ``out_dir`` as a Path. Files: RGB PNG (uint8), z-depth ``.npy`` (float32 metres, ``inf``
@@ -207,7 +215,8 @@ def capture(scene: str | Path, rig: RigConfig, test_rig: Optional[RigConfig], ou
 
     Raises:
         FileNotFoundError / ValueError: bad scene, rig, pose or size (before anything is written);
-        FileExistsError: ``out_dir`` is a non-dataset folder; RuntimeError: no OpenGL backend.
+        FileExistsError: ``out_dir`` holds something else (or, without ``overwrite``, a
+        dataset); RuntimeError: no OpenGL backend.
     """
     if fmt not in FORMATS:
         raise ValueError(f"unknown dataset format '{fmt}' (choose from {FORMATS})")
@@ -225,10 +234,14 @@ def capture(scene: str | Path, rig: RigConfig, test_rig: Optional[RigConfig], ou
     if test_rig is not None and (test_rig.count > 0 or test_rig.kind == "explicit"):
         views += [View("test", p, where=f"test view {i}")
                   for i, p in enumerate(rig_poses(test_rig))]
-    check_views(views)  # fail before writing anything
+    try:
+        check_views(views)  # fail before writing anything
+    except ValueError as err:
+        raise ValueError(f"{_scene_source(scene).removeprefix('builtin:')}: {err}") from None
     meta = scene_manifest(model, data, resolve_scene(scene).stem, _scene_source(scene))
     out_dir = write_views(model, data, views, out_dir, rig.width, rig.height, rig.fov_deg, meta,
-                          fmt=fmt, manifest=manifest, progress=progress, sensor=sensor)
+                          fmt=fmt, manifest=manifest, progress=progress, sensor=sensor,
+                          overwrite=overwrite)
     n_test = sum(1 for v in views if v.split == "test")
     log.info("wrote %d views (%d train, %d test) of '%s' to %s", len(views), len(views) - n_test,
              n_test, meta["name"], out_dir)

@@ -13,6 +13,7 @@ each (:mod:`sims.articulated`). Options of one kind given to another are errors.
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 import mujoco
@@ -36,17 +37,60 @@ _DYNAMIC_OPTIONS = ("frames", "duration", "test_every", "camera_path")
 _ARTICULATED_OPTIONS = ("configs", "test_configs", "train_range")
 
 
+#: The longest image side a capture renders, pixels.
+MAX_IMAGE_SIDE = 16384
+
+
+def _integer(low: int, high: int | None = None):
+    """An argparse type: an integer in [low, high]."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = low - 1
+        if value < low or (high is not None and value > high):
+            bound = f">= {low}" if high is None else f"in [{low}, {high}]"
+            raise argparse.ArgumentTypeError(f"expected an integer {bound}, got {text!r}")
+        return value
+    return parse
+
+
+def _real(low: float, high: float, *, open_low: bool = True, open_high: bool = True):
+    """An argparse type: a finite number between ``low`` and ``high`` (open or closed ends)."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        ok = (value > low if open_low else value >= low) and \
+            (value < high if open_high else value <= high)
+        if not ok or not math.isfinite(value):
+            ends = ("(" if open_low else "[") + f"{low:g}, {high:g}" + (")" if open_high else "]")
+            raise argparse.ArgumentTypeError(f"expected a number in {ends}, got {text!r}")
+        return value
+    return parse
+
+
+_seed = _integer(0)
+_DEGREES_OF_ELEVATION = _real(-90.0, 90.0, open_low=False, open_high=False)
+
+
 def add_capture_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """Add the capture options to ``parser`` (returned for chaining)."""
     parser.add_argument("--scene", default="tabletop",
                         help="built-in scene name or path to an MJCF file (default: tabletop)")
-    parser.add_argument("--out", required=True, type=Path, help="dataset folder to write")
-    parser.add_argument("--views", type=int, default=None,
+    parser.add_argument("--out", required=True, type=Path,
+                        help="dataset folder to write (new or empty)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace --out when it holds a dataset captured before (never a "
+                             "folder holding anything else)")
+    parser.add_argument("--views", type=_integer(1), default=None,
                         help=f"training views (default {DEFAULT_VIEWS}; explicit rig: all)")
-    parser.add_argument("--test-views", type=int, default=None,
+    parser.add_argument("--test-views", type=_integer(0), default=None,
                         help=f"test views (default {DEFAULT_TEST_VIEWS}; explicit rig: the "
                              "file's test list)")
-    parser.add_argument("--size", type=int, nargs="+", default=[128], metavar="N",
+    parser.add_argument("--size", type=_integer(1, MAX_IMAGE_SIDE), nargs="+", default=[128],
+                        metavar="N",
                         help="image size: N (square) or W H, pixels (default 128)")
     parser.add_argument("--rig", choices=RIG_KINDS + SEQUENCE_RIGS, default=None,
                         help="camera rig: hemisphere, orbit or explicit for static scenes "
@@ -56,23 +100,25 @@ def add_capture_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentP
                              "scenes")
     parser.add_argument("--poses", type=Path, default=None,
                         help="JSON pose file of the explicit rig (4x4 matrices or eye/target)")
-    parser.add_argument("--fov", type=float, default=None,
+    parser.add_argument("--fov", type=_real(0.0, 180.0), default=None,
                         help="vertical field of view, degrees (default: the scene's)")
-    parser.add_argument("--radius", type=float, default=None,
+    parser.add_argument("--radius", type=_real(0.0, math.inf), default=None,
                         help="camera distance to the target, metres (default: the scene's)")
-    parser.add_argument("--target", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
+    parser.add_argument("--target", type=_real(-math.inf, math.inf), nargs=3, default=None,
+                        metavar=("X", "Y", "Z"),
                         help="look-at point, world metres (default: the scene's)")
-    parser.add_argument("--elevation-range", type=float, nargs=2, default=(15.0, 70.0),
+    parser.add_argument("--elevation-range", type=_DEGREES_OF_ELEVATION, nargs=2,
+                        default=(15.0, 70.0),
                         metavar=("LO", "HI"), help="hemisphere elevations, degrees (15 70)")
-    parser.add_argument("--elevation", type=float, default=30.0,
+    parser.add_argument("--elevation", type=_DEGREES_OF_ELEVATION, default=30.0,
                         help="orbit elevation, degrees (default 30)")
-    parser.add_argument("--target-jitter", type=float, default=0.0,
+    parser.add_argument("--target-jitter", type=_real(0.0, math.inf, open_low=False), default=0.0,
                         help="hemisphere: random look-at offset half-width, metres (default 0)")
     parser.add_argument("--format", choices=FORMATS, default="nerfstudio", dest="format",
                         help="dataset format (default nerfstudio)")
     parser.add_argument("--no-manifest", action="store_true",
                         help="do not write the scene manifest ('scene' object)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed of the rig (default 0)")
+    parser.add_argument("--seed", type=_seed, default=0, help="random seed of the rig (default 0)")
     parser.add_argument("--sensor-depth", choices=("auto", "behind", "invalid", "off"),
                         default="auto",
                         help="also write a simulated depth sensor's reading (sensor_depth): "
@@ -81,27 +127,28 @@ def add_capture_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentP
                              "transparent geoms, else off (default auto)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     seq = parser.add_argument_group("dynamic and articulated scenes")
-    seq.add_argument("--views-per-frame", type=int, default=None, metavar="K",
+    seq.add_argument("--views-per-frame", type=_integer(1), default=None, metavar="K",
                      help=f"multiview: cameras per time step / configuration (default "
                           f"{DEFAULT_VIEWS_PER_FRAME}; monocular: 1)")
-    seq.add_argument("--frames", type=int, default=None, metavar="N",
+    seq.add_argument("--frames", type=_integer(1), default=None, metavar="N",
                      help=f"dynamic: time steps of the rollout (default {dyn.DEFAULT_FRAMES})")
-    seq.add_argument("--duration", type=float, default=None, metavar="S",
+    seq.add_argument("--duration", type=_real(0.0, math.inf), default=None, metavar="S",
                      help="dynamic: simulated seconds (default: the scene's, else "
                           f"{dyn.DEFAULT_DURATION_S})")
-    seq.add_argument("--test-every", type=int, default=None, metavar="M",
+    seq.add_argument("--test-every", type=_integer(0), default=None, metavar="M",
                      help=f"dynamic: hold out every M-th time step for the test split, from "
                           f"step M // 2 (default {dyn.DEFAULT_TEST_EVERY}; 0 = no test split)")
     seq.add_argument("--camera-path", choices=CAMERA_PATHS, default=None,
                      help="dynamic monocular: the camera moves along a smooth spiral, or "
                           "jumps to a random view every step as in D-NeRF (default spiral)")
-    seq.add_argument("--configs", type=int, default=None, metavar="N",
+    seq.add_argument("--configs", type=_integer(1), default=None, metavar="N",
                      help=f"articulated: training joint configurations (default "
                           f"{art.DEFAULT_CONFIGS})")
-    seq.add_argument("--test-configs", type=int, default=None, metavar="M",
+    seq.add_argument("--test-configs", type=_integer(0), default=None, metavar="M",
                      help=f"articulated: held-out test configurations, half of them outside "
                           f"the training range (default {art.DEFAULT_TEST_CONFIGS})")
-    seq.add_argument("--train-range", type=float, nargs=2, default=None, metavar=("LO", "HI"),
+    seq.add_argument("--train-range", type=_real(0.0, 1.0, open_low=False, open_high=False),
+                     nargs=2, default=None, metavar=("LO", "HI"),
                      help="articulated: training configurations stay within these fractions "
                           "of each joint's range (default %g %g); extrapolating test "
                           "configurations lie at least %g of the range outside them"
@@ -213,7 +260,8 @@ def run_capture(args: argparse.Namespace) -> Path:
     rig, test = rigs_from_args(args)
     out = capture(args.scene, rig, test, args.out, fmt=args.format,
                   manifest=not args.no_manifest, progress=not args.no_progress,
-                  sensor=sensor_from_arg(args.scene, args.sensor_depth, args.seed))
+                  sensor=sensor_from_arg(args.scene, args.sensor_depth, args.seed),
+                  overwrite=args.overwrite)
     n_train, n_test = _count_frames(out, args.format)
     print(f"wrote {n_train + n_test} frames ({n_train} train, {n_test} test) of "
           f"'{args.scene}' at {rig.width}x{rig.height} to {out} ({args.format})")
@@ -223,7 +271,7 @@ def run_capture(args: argparse.Namespace) -> Path:
 def _run_sequence_capture(args: argparse.Namespace, kind: str, rig_kind: str) -> Path:
     rig = sequence_rig_from_args(args, rig_kind)
     common = dict(fmt=args.format, manifest=not args.no_manifest,
-                  progress=not args.no_progress,
+                  progress=not args.no_progress, overwrite=args.overwrite,
                   sensor=sensor_from_arg(args.scene, args.sensor_depth, args.seed))
     if kind == "dynamic":
         steps = args.frames if args.frames is not None else dyn.DEFAULT_FRAMES

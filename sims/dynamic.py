@@ -27,6 +27,7 @@ from typing import Optional
 
 import numpy as np
 
+from nerfbot.data.outputs import check_output_folder
 from sims.capture import (View, _scene_source, _warn_view_dependent_lighting, check_views,
                           write_views)
 from sims.joints import joint_bodies, joint_info
@@ -89,17 +90,18 @@ def capture_dynamic(scene: str | Path, rig: SequenceRig, out_dir: Path,
                     frames: int = DEFAULT_FRAMES, duration_s: Optional[float] = None,
                     test_every: int = DEFAULT_TEST_EVERY, fmt: str = "nerfstudio",
                     manifest: bool = True, progress: bool = True,
-                    sensor: Optional[DepthSensorModel] = None) -> Path:
+                    sensor: Optional[DepthSensorModel] = None, overwrite: bool = False) -> Path:
     """Roll the physics of ``scene`` out and render it over time to ``out_dir``.
 
     Args:
         scene: a dynamic scene: built-in name (``"dynamic"``) or MJCF path.
         rig: the cameras (:func:`sims.sequence.sequence_rig`); monocular or multiview.
-        out_dir: dataset folder to create (or replace, if it holds a previous dataset).
+        out_dir: dataset folder to create (missing or empty), or with ``overwrite`` to
+            replace (a dataset captured there before).
         frames: time steps (>= 2); the dataset has ``frames * rig.views_per_step`` images.
         duration_s: simulated seconds (default: the scene's ``nerfbot_duration``).
         test_every: hold out every ``test_every``-th time step for the test split (0: none).
-        fmt, manifest, progress, sensor: as :func:`sims.capture.capture`.
+        fmt, manifest, progress, sensor, overwrite: as :func:`sims.capture.capture`.
 
     Returns:
         ``out_dir`` (absolute). Frames are written in time order, the views of one step
@@ -113,6 +115,7 @@ def capture_dynamic(scene: str | Path, rig: SequenceRig, out_dir: Path,
             anything is written); FileExistsError / RuntimeError as :func:`sims.capture.capture`.
     """
     model, data, name = load_sequence_scene(scene, "dynamic")
+    check_output_folder(out_dir, "dataset", overwrite=overwrite)  # before the long part
     _warn_view_dependent_lighting(model)
     duration = scene_duration(model) if duration_s is None else float(duration_s)
     test_steps = held_out_steps(frames, test_every)
@@ -150,7 +153,8 @@ def capture_dynamic(scene: str | Path, rig: SequenceRig, out_dir: Path,
 
     out = write_views(model, data, views, out_dir, rig.width, rig.height, rig.fov_deg, meta,
                       fmt=fmt, manifest=manifest, progress=progress, sensor=sensor,
-                      extra_files=lambda root: np.savez(root / STATE_FILE, **states))
+                      extra_files=lambda root: np.savez(root / STATE_FILE, **states),
+                      overwrite=overwrite)
     n_test = sum(1 for v in views if v.split == "test")
     log.info("wrote %d views (%d train, %d test) of '%s' over %d time steps to %s", len(views),
              len(views) - n_test, n_test, name, frames, out)

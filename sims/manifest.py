@@ -92,7 +92,10 @@ def scene_manifest(model: mujoco.MjModel, data: mujoco.MjData, name: str, source
     """The manifest dict of the scene in its current state (``mj_forward`` must have run)."""
     drawn = rendered_geoms(model, data)
     ids = sorted({int(g.objid) for g in drawn})
-    bounds = content_bounds(model, data, ids)
+    try:
+        bounds = content_bounds(model, data, ids)
+    except ValueError as err:
+        raise ValueError(f"{source.removeprefix('builtin:')}: {err}") from None
     transparent = sorted({int(g.objid) for g in drawn if g.rgba[3] < 1.0})
     specular = any(g.specular > SPECULAR_THRESHOLD or g.reflectance > 0.0 for g in drawn)
     shiny = sorted({int(g.objid) for g in drawn

@@ -348,7 +348,7 @@ def test_blender_format_and_cli(tmp_path, capsys):
             assert np.load(out / fr["depth_file_path"]).shape == (32, 40)
     args = parser.parse_args(["--out", str(tmp_path / "bl"), "--views", "1", "--test-views", "0",
                               "--size", "32", "--format", "blender", "--no-manifest",
-                              "--no-progress"])
+                              "--no-progress", "--overwrite"])
     run_capture(args)  # replaces the previous dataset
     assert "scene" not in json.loads((out / "transforms_train.json").read_text())
     assert not (out / "transforms_test.json").exists()
@@ -377,14 +377,14 @@ def test_capture_is_atomic(tmp_path, monkeypatch):
 
     monkeypatch.setattr(capture_mod.CaptureCamera, "render", failing_render)
     with pytest.raises(RuntimeError, match="simulated crash"):
-        capture("tabletop", small_rig(count=3), None, out, progress=False)
+        capture("tabletop", small_rig(count=3), None, out, progress=False, overwrite=True)
     assert (out / "transforms.json").read_text() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ds", "poses.json"]
 
     precious = tmp_path / "notes"
     precious.mkdir()
     (precious / "keep.txt").write_text("mine")
-    with pytest.raises(FileExistsError, match="not a dataset"):
+    with pytest.raises(FileExistsError, match="not made by nerfbot"):
         capture("tabletop", small_rig(count=1), None, precious, progress=False)
     assert (precious / "keep.txt").read_text() == "mine"
 

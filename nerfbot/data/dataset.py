@@ -9,6 +9,7 @@ from typing import Optional
 import numpy as np
 
 from nerfbot.cameras import Cameras
+from nerfbot.data.errors import DatasetError
 
 
 @dataclass
@@ -29,7 +30,9 @@ class Dataset:
         intrinsics: (N, 4) float64 fx, fy, cx, cy in pixels.
         sizes: (N, 2) int64 width, height.
         depths: N arrays (H_i, W_i) float32 z-depth in metres (NaN where unknown) or None.
-        masks: N arrays (H_i, W_i) bool or None.
+        masks: N arrays (H_i, W_i) bool (False = invalid: masked out by ``mask_path`` or
+            outside the distorted source image) or None (every pixel valid). Invalid pixels are
+            never trained on nor scored.
         segmentations: N arrays (H_i, W_i) int32 MuJoCo geom ids (-1 = none) or None.
         times: (N,) float32 in [0, 1], or None for a static capture.
         joints: N dicts joint name -> position, or None.
@@ -68,10 +71,21 @@ class Dataset:
         return len(self.images)
 
     def indices(self, split: str) -> list[int]:
-        """Frame indices of ``split``; raises KeyError naming the available splits."""
+        """Frame indices of ``split`` (possibly empty); :class:`DatasetError` naming the
+        available splits when the dataset has no such split."""
         if split not in self.splits:
-            raise KeyError(f"{self.root}: no '{split}' split (available: {sorted(self.splits)})")
+            raise DatasetError(f"{self.root}: no '{split}' split (available: "
+                               f"{', '.join(sorted(self.splits)) or 'none'})")
         return list(self.splits[split])
+
+    def split_sizes(self) -> str:
+        """The splits and their frame counts, for messages: "test 4, train 16"."""
+        return ", ".join(f"{k} {len(v)}" for k, v in sorted(self.splits.items())) or "none"
+
+    def valid_mask(self, i: int) -> Optional[np.ndarray]:
+        """(H, W) bool, the pixels of frame ``i`` that may be trained on and scored; None when
+        all of them may."""
+        return self.masks[i] if i < len(self.masks) else None
 
     def cameras(self, indices: Optional[list[int]] = None) -> Cameras:
         """Cameras of the given frames (all frames by default)."""

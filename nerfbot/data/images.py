@@ -175,8 +175,9 @@ class Undistorter:
         w, h = intr.width, intr.height
         mx, my = self.map_x, self.map_y
         self.valid = (mx >= 0) & (mx <= w - 1) & (my >= 0) & (my <= h - 1)
-        xi = np.rint(mx).astype(np.int64)
-        yi = np.rint(my).astype(np.int64)
+        # non-finite or huge source coordinates (absurd coefficients) become "outside"
+        xi = np.rint(np.clip(np.nan_to_num(mx, nan=-1.0), -1, w)).astype(np.int64)
+        yi = np.rint(np.clip(np.nan_to_num(my, nan=-1.0), -1, h)).astype(np.int64)
         self._near_ok = ((xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)).reshape(-1)
         self._near_idx = (np.clip(yi, 0, h - 1) * w + np.clip(xi, 0, w - 1)).reshape(-1).astype(
             np.int32 if w * h < 2**31 else np.int64)

@@ -10,6 +10,10 @@ Distortion models: ``OPENCV`` (also ``SIMPLE_RADIAL``, ``RADIAL``) with k1, k2, 
 optional k3; ``OPENCV_FISHEYE`` (or instant-ngp ``is_fisheye``) with k1..k4; ``PINHOLE`` /
 ``SIMPLE_PINHOLE`` without distortion. With no ``camera_model``, non-zero k1, k2, k3, p1, p2
 mean OPENCV.
+
+Plausibility (so that float32 rays stay finite): ``fx / max(w, h)`` and ``fy / max(w, h)`` in
+[1e-4, 1e4] (fields of view from about 0.006 to 179.99 degrees), and the principal point within
+``1e4 * max(w, h)`` pixels of the image centre (crops of large sensors keep theirs far out).
 """
 
 from __future__ import annotations
@@ -23,6 +27,11 @@ from nerfbot.data.errors import DatasetError
 from nerfbot.data.spec import number
 
 log = logging.getLogger(__name__)
+
+#: Range of focal length / longer image side, and the largest principal point offset from the
+#: image centre in units of the longer side (see the module docstring).
+FOCAL_RATIO_RANGE = (1e-4, 1e4)
+MAX_PRINCIPAL_OFFSET = 1e4
 
 _PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
 _OPENCV_MODELS = ("OPENCV", "SIMPLE_RADIAL", "RADIAL")
@@ -117,6 +126,31 @@ def _distortion(camera: dict, where: str) -> tuple[str, tuple]:
                        f"{', '.join(_PINHOLE_MODELS + _OPENCV_MODELS + _FISHEYE_MODELS)})")
 
 
+def _field(camera: dict, keys: tuple, where: str) -> str:
+    """The "<json file>: <field>" of the first of ``keys`` present, else ``where``."""
+    return next((camera[k][1] for k in keys if k in camera), where)
+
+
+def _check_plausible(camera: dict, fx: float, fy: float, cx: float, cy: float, width: int,
+                     height: int, where: str) -> None:
+    """DatasetError naming the field when a focal length or the principal point is absurd for a
+    ``width`` x ``height`` image (thresholds in the module docstring)."""
+    side = max(width, height)
+    lo, hi = FOCAL_RATIO_RANGE
+    for axis, f in (("x", fx), ("y", fy)):
+        if not lo <= f / side <= hi:
+            field = _field(camera, (f"fl_{axis}", f"{axis}_fov", f"camera_angle_{axis}",
+                                    "fl_x", "fl_y", "x_fov", "y_fov", "camera_angle_x",
+                                    "camera_angle_y"), where)
+            raise DatasetError(f"{field}: focal length {f:.6g} px is implausible for a "
+                               f"{width}x{height} image (must be {lo:g} to {hi:g} times the "
+                               "longer side)")
+    for key, c, size in (("cx", cx, width), ("cy", cy, height)):
+        if abs(c - size / 2.0) > MAX_PRINCIPAL_OFFSET * side:
+            raise DatasetError(f"{_field(camera, (key,), where)}: principal point {c:.6g} px is "
+                               f"implausibly far from the centre of a {width}x{height} image")
+
+
 def resolve_intrinsics(camera: dict, width: int, height: int, where: str) -> Intrinsics:
     """Intrinsics of a ``width`` x ``height`` image from merged camera fields.
 
@@ -135,5 +169,6 @@ def resolve_intrinsics(camera: dict, width: int, height: int, where: str) -> Int
     fy = fx if fy is None else fy
     cx = number(camera["cx"][0], camera["cx"][1]) if "cx" in camera else width / 2.0
     cy = number(camera["cy"][0], camera["cy"][1]) if "cy" in camera else height / 2.0
+    _check_plausible(camera, fx, fy, cx, cy, width, height, where)
     model, coeffs = _distortion(camera, where)
     return Intrinsics(fx, fy, cx, cy, int(width), int(height), model, coeffs)

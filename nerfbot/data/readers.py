@@ -12,6 +12,11 @@ A folder holding both ``transforms.json`` and Blender split files is read as ner
 
 Default splits (nerfstudio without ``*_filenames`` lists): frames 0, 8, 16, ... (every 8th,
 starting with the first) are "test", the others "train"; a single-frame dataset is all "train".
+
+Checks across frames: every frame names the same joints; with a scene manifest's bounds, every
+camera lies within ``max(100 diagonals, 100 m)`` of their centre (a rig sees its scene from a
+few diagonals away; a pose in millimetres or in another frame lands far beyond). Frames sharing
+an image file, and training images that are also test or val images, are logged as warnings.
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Union
 
+import cv2
 import numpy as np
 from tqdm.auto import tqdm
 
@@ -44,6 +50,13 @@ BLACK = (0.0, 0.0, 0.0)
 #: Every TEST_EVERY-th frame (from frame 0) is a test frame when the dataset names no splits.
 TEST_EVERY = 8
 _BLENDER_JSON = re.compile(r"transforms_(train|val|test)\.json")
+#: Undistortion must leave at least this fraction of an image with a source pixel; less means
+#: absurd coefficients (k1 = 1e6 leaves none), not a real lens.
+MIN_UNDISTORTED_FRACTION = 0.1
+#: With manifest bounds, cameras farther than max(MAX_SCENE_DIAGONALS * diagonal, MIN_REACH_M)
+#: from the centre of the bounds are refused.
+MAX_SCENE_DIAGONALS = 100.0
+MIN_REACH_M = 100.0
 
 
 @dataclass
@@ -115,6 +128,31 @@ def _check_declared_size(spec: FrameSpec, width: int, height: int) -> None:
                     f"(w x h) but {key} is declared as {declared} ({where})")
 
 
+def _coefficient_field(spec: FrameSpec) -> str:
+    """"<json file>: <field>" of the frame's largest distortion coefficient (for messages)."""
+    present = [k for k in ("k1", "k2", "k3", "k4", "p1", "p2") if k in spec.camera]
+    if not present:
+        return f"{spec.where}.camera_model"
+    return spec.camera[max(present, key=lambda k: abs(float(spec.camera[k][0])))][1]
+
+
+def _undistorter(spec: FrameSpec, intr: Intrinsics):
+    """The frame's :class:`~nerfbot.data.images.Undistorter`; DatasetError naming the largest
+    coefficient when the distortion leaves under MIN_UNDISTORTED_FRACTION of the image."""
+    try:
+        u = undistorter(intr)
+    except cv2.error as e:
+        raise DatasetError(f"{_coefficient_field(spec)}: cannot undistort with {intr.model} "
+                           f"{intr.coeffs}: {str(e).strip().splitlines()[-1]}") from None
+    fraction = float(u.valid.mean())
+    if fraction < MIN_UNDISTORTED_FRACTION:
+        raise DatasetError(f"{_coefficient_field(spec)}: {intr.model} distortion {intr.coeffs} "
+                           f"leaves {fraction:.1%} of the {intr.width}x{intr.height} image with "
+                           f"source pixels (at least {MIN_UNDISTORTED_FRACTION:.0%} needed); "
+                           "check the coefficients")
+    return u
+
+
 def _load_frame(spec: FrameSpec, background: tuple) -> _Frame:
     """Read, check, composite and undistort one frame."""
     rgb, alpha = read_image(spec.image_path, f"{spec.where}.file_path")
@@ -136,7 +174,7 @@ def _load_frame(spec: FrameSpec, background: tuple) -> _Frame:
     if alpha is not None:
         rgb = composite(rgb, alpha, background)
     if intr.distorted:
-        u = undistorter(intr)
+        u = _undistorter(spec, intr)
         if alpha is not None:
             rgb = u.linear(rgb, tuple(255.0 * c for c in background))
             alpha = u.linear(alpha, 0)
@@ -202,6 +240,54 @@ def _all_or_none(specs: list[FrameSpec], field: str) -> Optional[list]:
     return values
 
 
+def _check_joint_names(specs: list[FrameSpec]) -> None:
+    """Every frame must name the same joints as the first."""
+    first = set(specs[0].joints)
+    for spec in specs[1:]:
+        names = set(spec.joints)
+        if names != first:
+            raise DatasetError(f"{spec.where}.joints: joint names {sorted(names)} differ from "
+                               f"{specs[0].where}'s {sorted(first)}")
+
+
+def _warn_duplicate_files(specs: list[FrameSpec]) -> None:
+    """Log a warning for every image file that more than one frame names."""
+    users: dict[Path, list[str]] = {}
+    for spec in specs:
+        users.setdefault(spec.image_path, []).append(spec.where)
+    for path, wheres in users.items():
+        if len(wheres) > 1:
+            log.warning("%d frames use the same image file %s: %s", len(wheres), path,
+                        "; ".join(wheres))
+
+
+def _warn_split_overlap(specs: list[FrameSpec], splits: dict[str, list[int]]) -> None:
+    """Log a warning when a test or val frame is, or shares its image with, a training frame
+    (its metrics would then measure memorisation)."""
+    train_files = {specs[i].image_path for i in splits.get("train", [])}
+    for name in ("val", "test"):
+        shared = [specs[i].where for i in splits.get(name, [])
+                  if specs[i].image_path in train_files]
+        if shared:
+            log.warning("%d of %d '%s' frames are also training images, so %s metrics overstate "
+                        "quality: %s", len(shared), len(splits[name]), name, name,
+                        "; ".join(shared[:5]) + (" ..." if len(shared) > 5 else ""))
+
+
+def _check_cameras_near_scene(specs: list[FrameSpec], c2w: np.ndarray, box: np.ndarray) -> None:
+    """DatasetError naming the first camera farther from the centre of the manifest's bounds
+    ``box`` (2, 3) than max(MAX_SCENE_DIAGONALS diagonals, MIN_REACH_M metres)."""
+    centre = 0.5 * (box[0] + box[1])
+    reach = max(MAX_SCENE_DIAGONALS * float(np.linalg.norm(box[1] - box[0])), MIN_REACH_M)
+    distance = np.linalg.norm(c2w[:, :3, 3] - centre, axis=1)
+    far = np.flatnonzero(distance > reach)
+    if far.size:
+        i = int(far[0])
+        raise DatasetError(f"{specs[i].where}.transform_matrix: camera is {distance[i]:.4g} m from "
+                           f"the centre of the scene bounds (scene.bounds), beyond {reach:.4g} m; "
+                           "are the poses in metres and in the scene's frame?")
+
+
 def _bounds(aabb, parsed: ParsedDataset, c2w, intrinsics, sizes) -> tuple[np.ndarray, str, str]:
     """(aabb (2, 3), aabb_source, rule): user > manifest scene.bounds (padded) > cameras."""
     manifest_box = None
@@ -251,12 +337,19 @@ def load_dataset(path: Union[str, os.PathLike], *, aabb=None, background=None) -
     _check_mixed_sizes(specs, frames)
     times = _all_or_none(specs, "time")
     joints = _all_or_none(specs, "joints")
+    if joints is not None:
+        _check_joint_names(specs)
+    splits = parsed.splits if parsed.splits is not None else default_splits(len(frames))
+    _warn_duplicate_files(specs)
+    _warn_split_overlap(specs, splits)
 
     c2w = np.stack([s.c2w for s in specs])
     intrinsics = np.array([[f.intr.fx, f.intr.fy, f.intr.cx, f.intr.cy] for f in frames],
                           dtype=np.float64)
     sizes = np.array([[f.intr.width, f.intr.height] for f in frames], dtype=np.int64)
     box, source, rule = _bounds(aabb, parsed, c2w, intrinsics, sizes)
+    if source == "manifest":
+        _check_cameras_near_scene(specs, c2w, box)
 
     any_alpha = any(f.alpha is not None for f in frames)
     dataset_bg = bg if bg is not None else (WHITE if any_alpha else "learned")
@@ -284,7 +377,7 @@ def load_dataset(path: Union[str, os.PathLike], *, aabb=None, background=None) -
         sensor_depths=[f.sensor_depth for f in frames],
         times=None if times is None else np.asarray(times, dtype=np.float32),
         joints=joints,
-        splits=parsed.splits if parsed.splits is not None else default_splits(len(frames)),
+        splits=splits,
         aabb=box,
         aabb_source=source,
         manifest=parsed.manifest,

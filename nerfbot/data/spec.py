@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import posixpath
 from dataclasses import dataclass
 from pathlib import Path, PureWindowsPath
@@ -29,6 +30,10 @@ PER_FRAME_INTRINSIC_KEYS = CAMERA_KEYS[:10]
 
 #: Extensions tried when a ``file_path`` names no existing file (Blender omits ".png").
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg")
+
+#: Largest camera coordinate accepted, metres. Rays are float32, whose spacing at 1e5 is 8 mm:
+#: poses further out (e.g. georeferenced UTM or ECEF coordinates) must be recentred first.
+MAX_CAMERA_COORDINATE_M = 1e5
 
 
 @dataclass
@@ -108,6 +113,8 @@ def read_json(path: Path) -> dict:
     except json.JSONDecodeError as e:
         raise DatasetError(
             f"{path}: invalid JSON at line {e.lineno}, column {e.colno}: {e.msg}") from None
+    except (ValueError, RecursionError) as e:  # e.g. an integer of over 4300 digits, deep nesting
+        raise DatasetError(f"{path}: invalid JSON: {e}") from None
     if not isinstance(data, dict):
         raise DatasetError(f"{path}: top level must be a JSON object, got {type(data).__name__}")
     return data
@@ -117,7 +124,10 @@ def number(value: Any, where: str, *, positive: bool = False) -> float:
     """A finite JSON number (bools rejected), optionally > 0."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise DatasetError(f"{where}: expected a number, got {value!r}")
-    v = float(value)
+    try:
+        v = float(value)
+    except OverflowError:
+        v = math.inf
     if not math.isfinite(v):
         raise DatasetError(f"{where}: must be finite, got {value!r}")
     if positive and v <= 0.0:
@@ -139,13 +149,13 @@ def normalise_rel(value: str) -> str:
 
 
 def resolve_path(root: Path, value: Any, where: str) -> Path:
-    """Resolve a dataset-relative path, rejecting absolute paths and ones escaping ``root``.
-
-    The check is lexical (``..`` components are collapsed before the test); symbolic links
-    inside the dataset are followed as the user laid them out.
-    """
+    """A dataset-relative path as ``root / value``, rejecting absolute paths and ones whose
+    ``..`` components climb out of ``root`` (a lexical test; :func:`existing_file` also checks
+    where symbolic links lead)."""
     if not isinstance(value, str) or not value.strip():
         raise DatasetError(f"{where}: expected a non-empty relative path string, got {value!r}")
+    if "\x00" in value:
+        raise DatasetError(f"{where}: path {value!r} contains a NUL character")
     if value.startswith(("/", "\\")) or PureWindowsPath(value).drive or Path(value).is_absolute():
         raise DatasetError(f"{where}: absolute path {value!r} is not allowed; "
                            "paths must be relative to the dataset folder")
@@ -155,16 +165,24 @@ def resolve_path(root: Path, value: Any, where: str) -> Path:
     return root / norm
 
 
+def inside_root(path: Path, root: Path, where: str) -> Path:
+    """``path`` with symbolic links followed; DatasetError unless it lies inside ``root`` (also
+    resolved), so a link cannot reach files outside the dataset folder."""
+    real, real_root = Path(os.path.realpath(path)), Path(os.path.realpath(root))
+    if real != real_root and real_root not in real.parents:
+        raise DatasetError(f"{where}: {path} resolves to {real}, outside the dataset folder "
+                           f"{real_root} (symbolic link)")
+    return real
+
+
 def existing_file(root: Path, value: Any, where: str, what: str,
                   extensions: tuple[str, ...] = ()) -> Path:
-    """:func:`resolve_path`, then require a regular file (trying ``extensions`` if missing)."""
+    """:func:`resolve_path`, then require a regular file inside ``root`` once symbolic links
+    are followed (trying ``extensions`` if missing). Returns the resolved file."""
     p = resolve_path(root, value, where)
-    if p.is_file():
-        return p
-    for ext in extensions:
-        q = p.with_name(p.name + ext)
-        if q.is_file():
-            return q
+    for candidate in (p, *(p.with_name(p.name + ext) for ext in extensions)):
+        if candidate.is_file():
+            return inside_root(candidate, root, where)
     tried = f" (also tried {', '.join(extensions)})" if extensions else ""
     raise DatasetError(f"{where}: {what} file not found: {p}{tried}")
 
@@ -175,12 +193,18 @@ def pose(value: Any, where: str) -> np.ndarray:
         raise DatasetError(f"{where}: missing")
     try:
         m = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise DatasetError(f"{where}: expected a 4x4 matrix of numbers, got {value!r}") from None
     try:
-        return check_pose(m, where)
+        m = check_pose(m, where)
     except ValueError as e:
         raise DatasetError(str(e)) from None
+    position = m[:3, 3]
+    if np.abs(position).max() > MAX_CAMERA_COORDINATE_M:
+        raise DatasetError(f"{where}: camera position {position.tolist()} lies beyond "
+                           f"{MAX_CAMERA_COORDINATE_M:g} m of the origin; recentre the poses "
+                           "(or check their unit: metres are expected)")
+    return m
 
 
 def time_value(value: Any, where: str) -> float:
@@ -192,9 +216,10 @@ def time_value(value: Any, where: str) -> float:
 
 
 def joints_value(value: Any, where: str) -> dict:
-    """Joint name -> finite position."""
-    if not isinstance(value, dict):
-        raise DatasetError(f"{where}: expected an object joint name -> position, got {value!r}")
+    """Joint name -> finite position (at least one joint)."""
+    if not isinstance(value, dict) or not value:
+        raise DatasetError(f"{where}: expected a non-empty object joint name -> position, "
+                           f"got {value!r}")
     return {str(k): number(v, f"{where}.{k}") for k, v in value.items()}
 
 
@@ -263,12 +288,85 @@ def frames_list(meta: dict, json_path: Path) -> list:
 
 
 def manifest_value(meta: dict, json_path: Path) -> Optional[dict]:
-    """The top-level ``scene`` manifest object, or None when absent."""
+    """The top-level ``scene`` manifest object, or None when absent.
+
+    The keys nerfbot reads are type-checked here (``bounds`` when the bounds are chosen):
+    ``objects``, ``transparent_geoms``, ``moving_joints`` (lists of names), ``geoms`` (geom id
+    -> name), ``joint_info`` (joint name -> object, see :func:`joint_range`) and
+    ``part_bounds`` (list of {"joints": [names], "bounds": [[min], [max]]}).
+    """
     scene = meta.get("scene")
-    if scene is not None and not isinstance(scene, dict):
-        raise DatasetError(f"{json_path}: scene: expected an object (the scene manifest), "
+    if scene is None:
+        return None
+    where = f"{json_path}: scene"
+    if not isinstance(scene, dict):
+        raise DatasetError(f"{where}: expected an object (the scene manifest), "
                            f"got {type(scene).__name__}")
+    for key in ("objects", "transparent_geoms", "moving_joints"):
+        if scene.get(key) is not None:
+            name_list(scene[key], f"{where}.{key}")
+    if scene.get("geoms") is not None:
+        _geom_names(scene["geoms"], f"{where}.geoms")
+    if scene.get("joint_info") is not None:
+        _joint_info(scene["joint_info"], f"{where}.joint_info")
+    if scene.get("part_bounds") is not None:
+        _part_bounds(scene["part_bounds"], f"{where}.part_bounds")
     return scene
+
+
+def name_list(value: Any, where: str) -> list[str]:
+    """A JSON list of strings."""
+    if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+        raise DatasetError(f"{where}: expected a list of names, got {value!r}")
+    return value
+
+
+def _geom_names(value: Any, where: str) -> None:
+    """geom id (a decimal string) -> geom name (a string or null)."""
+    if not isinstance(value, dict):
+        raise DatasetError(f"{where}: expected an object geom id -> name, got {value!r}")
+    for key, name in value.items():
+        if not key.lstrip("-").isdigit() or not (name is None or isinstance(name, str)):
+            raise DatasetError(f"{where}.{key}: expected an integer geom id naming a geom, "
+                               f"got {key!r}: {name!r}")
+
+
+def joint_range(value: Any, where: str) -> Optional[tuple[float, float]]:
+    """A joint's limits ``[lo, hi]`` (radians / metres, finite, lo <= hi), or None (unlimited)."""
+    if value is None:
+        return None
+    if not isinstance(value, (list, tuple)) or len(value) != 2:
+        raise DatasetError(f"{where}: expected [lo, hi] (or null for an unlimited joint), "
+                           f"got {value!r}")
+    lo, hi = number(value[0], f"{where}[0]"), number(value[1], f"{where}[1]")
+    if lo > hi:
+        raise DatasetError(f"{where}: reversed range [{lo:g}, {hi:g}] (lo must be <= hi)")
+    return lo, hi
+
+
+def _joint_info(value: Any, where: str) -> None:
+    if not isinstance(value, dict):
+        raise DatasetError(f"{where}: expected an object joint name -> description, got {value!r}")
+    for name, info in value.items():
+        if not isinstance(info, dict):
+            raise DatasetError(f"{where}.{name}: expected an object, got {info!r}")
+        joint_range(info.get("range"), f"{where}.{name}.range")
+
+
+def _part_bounds(value: Any, where: str) -> None:
+    if not isinstance(value, list):
+        raise DatasetError(f"{where}: expected a list of parts, got {value!r}")
+    for k, part in enumerate(value):
+        if not isinstance(part, dict):
+            raise DatasetError(f"{where}[{k}]: expected an object, got {part!r}")
+        name_list(part.get("joints"), f"{where}[{k}].joints")
+        try:
+            box = np.asarray(part.get("bounds"), dtype=np.float64)
+        except (TypeError, ValueError, OverflowError):
+            box = np.empty(0)
+        if box.shape != (2, 3) or not np.all(np.isfinite(box)) or np.any(box[0] > box[1]):
+            raise DatasetError(f"{where}[{k}].bounds: expected [[xmin, ymin, zmin], "
+                               f"[xmax, ymax, zmax]] with min <= max, got {part.get('bounds')!r}")
 
 
 def depth_scale_value(meta: dict, json_path: Path) -> float:
