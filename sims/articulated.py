@@ -38,7 +38,7 @@ import mujoco
 import numpy as np
 
 from nerfbot.data.outputs import check_output_folder
-from sims.capture import (View, _scene_source, _warn_view_dependent_lighting, check_views,
+from sims.capture import (View, _scene_source, set_lighting, check_views,
                           write_views)
 from sims.joints import (JOINT_TYPES, body_rest_poses, joint_bodies, joint_id, joint_info,
                          rigid_parts, set_joints)
@@ -196,7 +196,7 @@ def capture_articulated(scene: str | Path, rig: SequenceRig, out_dir: Path,
                         joints: Optional[Sequence[str]] = None, fmt: str = "nerfstudio",
                         manifest: bool = True, progress: bool = True,
                         sensor: Optional[DepthSensorModel] = None,
-                        overwrite: bool = False) -> Path:
+                        overwrite: bool = False, headlight: bool = False) -> Path:
     """Render ``scene`` at ``configs`` training and ``test_configs`` test joint configurations.
 
     Args:
@@ -209,7 +209,7 @@ def capture_articulated(scene: str | Path, rig: SequenceRig, out_dir: Path,
         configs, test_configs, train_range, margin, outside_fraction: see
             :func:`config_schedule` (``rig.seed`` seeds it).
         joints: the joints to vary (default :func:`articulated_joints`).
-        fmt, manifest, progress, sensor, overwrite: as :func:`sims.capture.capture`.
+        fmt, manifest, progress, sensor, overwrite, headlight: as :func:`sims.capture.capture`.
 
     Returns:
         ``out_dir`` (absolute). Frames are written training configurations first, then test
@@ -225,7 +225,7 @@ def capture_articulated(scene: str | Path, rig: SequenceRig, out_dir: Path,
     """
     model, data, name = load_sequence_scene(scene, "articulated")
     check_output_folder(out_dir, "dataset", overwrite=overwrite)  # before the long part
-    _warn_view_dependent_lighting(model)
+    lighting = set_lighting(model, headlight)
     names = list(joints) if joints is not None else articulated_joints(model)
     schedule = config_schedule(model, names, configs, test_configs, train_range, margin,
                                outside_fraction, rig.seed)
@@ -252,6 +252,7 @@ def capture_articulated(scene: str | Path, rig: SequenceRig, out_dir: Path,
     bounds_q = np.stack([set_joints(model, model.qpos0, d)
                          for d in schedule.as_dicts(_bounds_configs(schedule, rig.seed))])
     meta["bounds"] = union_bounds(model, data, bounds_q).tolist()
+    meta["lighting"] = lighting
     bodies = joint_bodies(model, names)
     meta["joint_bodies"] = bodies
     meta["joint_info"] = joint_info(model, names)

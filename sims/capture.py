@@ -60,12 +60,29 @@ def _move_into_place(tmp: Path, out_dir: Path) -> None:
     shutil.rmtree(old, ignore_errors=True)
 
 
-def _warn_view_dependent_lighting(model) -> None:
+def set_lighting(model: mujoco.MjModel, headlight: bool = False) -> str:
+    """Light the capture statically unless ``headlight``; returns the manifest's ``lighting``.
+
+    MuJoCo's headlight (on in every MJCF unless it says otherwise) is attached to the viewing
+    camera, so its diffuse and specular terms shade the scene differently from every viewpoint.
+    By default they are turned off, its ambient term kept: "static". With ``headlight`` they
+    stay, as a light mounted on a robot's camera would shade: "headlight". A scene whose
+    headlight has no diffuse or specular light is "static" either way.
+    """
     head = model.vis.headlight
-    if head.active and (np.any(np.asarray(head.diffuse) > 0) or np.any(np.asarray(head.specular) > 0)):
-        log.warning("the scene's headlight has diffuse/specular light; it moves with the camera, "
-                    "so shading changes with the viewpoint (set <headlight diffuse='0 0 0' "
-                    "specular='0 0 0'/> for a static radiance field)")
+    moving = bool(head.active) and (np.any(np.asarray(head.diffuse) > 0)
+                                    or np.any(np.asarray(head.specular) > 0))
+    if not moving:
+        return "static"
+    if headlight:
+        log.warning("keeping the scene's headlight: its diffuse and specular light move with the "
+                    "camera, so shading changes with the viewpoint")
+        return "headlight"
+    head.diffuse[:] = 0.0
+    head.specular[:] = 0.0
+    log.info("static lighting: the headlight keeps only its ambient light, so shading does not "
+             "follow the camera (--headlight keeps its diffuse and specular light)")
+    return "static"
 
 
 def _scene_source(scene) -> str:
@@ -191,7 +208,8 @@ def write_views(model: mujoco.MjModel, data: mujoco.MjData, views: Sequence[View
 def capture(scene: str | Path, rig: RigConfig, test_rig: Optional[RigConfig], out_dir: Path,
             size: Optional[int | Sequence[int]] = None, fmt: str = "nerfstudio",
             manifest: bool = True, progress: bool = True,
-            sensor: Optional[DepthSensorModel] = None, overwrite: bool = False) -> Path:
+            sensor: Optional[DepthSensorModel] = None, overwrite: bool = False,
+            headlight: bool = False) -> Path:
     """Render ``rig`` (train split) and ``test_rig`` (test split) views of ``scene`` to ``out_dir``.
 
     Args:
@@ -207,6 +225,9 @@ def capture(scene: str | Path, rig: RigConfig, test_rig: Optional[RigConfig], ou
         sensor: also write each view's simulated depth-sensor reading (``sensor_depth``, see
             :mod:`sims.sensor`); the manifest records the model under ``depth_sensor``.
         overwrite: replace a dataset captured at ``out_dir`` before.
+        headlight: keep the headlight's diffuse and specular light, which follow the camera
+            (default: static lighting, :func:`set_lighting`); the manifest's ``lighting`` says
+            which.
 
     Returns:
         ``out_dir`` as a Path. Files: RGB PNG (uint8), z-depth ``.npy`` (float32 metres, ``inf``
@@ -229,7 +250,7 @@ def capture(scene: str | Path, rig: RigConfig, test_rig: Optional[RigConfig], ou
                          f"{rig.size} @ {rig.fov_deg} deg vs {test_rig.size} @ {test_rig.fov_deg} deg")
 
     model, data = load_capture_model(scene)
-    _warn_view_dependent_lighting(model)
+    lighting = set_lighting(model, headlight)
     views = [View("train", p, where=f"train view {i}") for i, p in enumerate(rig_poses(rig))]
     if test_rig is not None and (test_rig.count > 0 or test_rig.kind == "explicit"):
         views += [View("test", p, where=f"test view {i}")
@@ -239,6 +260,7 @@ def capture(scene: str | Path, rig: RigConfig, test_rig: Optional[RigConfig], ou
     except ValueError as err:
         raise ValueError(f"{_scene_source(scene).removeprefix('builtin:')}: {err}") from None
     meta = scene_manifest(model, data, resolve_scene(scene).stem, _scene_source(scene))
+    meta["lighting"] = lighting
     out_dir = write_views(model, data, views, out_dir, rig.width, rig.height, rig.fov_deg, meta,
                           fmt=fmt, manifest=manifest, progress=progress, sensor=sensor,
                           overwrite=overwrite)

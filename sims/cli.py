@@ -116,6 +116,10 @@ def add_capture_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentP
                         help="hemisphere: random look-at offset half-width, metres (default 0)")
     parser.add_argument("--format", choices=FORMATS, default="nerfstudio", dest="format",
                         help="dataset format (default nerfstudio)")
+    parser.add_argument("--headlight", action="store_true",
+                        help="keep the scene's headlight, whose diffuse and specular light follow "
+                             "the camera (as a light on a robot's camera does); default: static "
+                             "lighting, the headlight's ambient term only")
     parser.add_argument("--no-manifest", action="store_true",
                         help="do not write the scene manifest ('scene' object)")
     parser.add_argument("--seed", type=_seed, default=0, help="random seed of the rig (default 0)")
@@ -260,6 +264,7 @@ def run_capture(args: argparse.Namespace) -> Path:
     rig, test = rigs_from_args(args)
     out = capture(args.scene, rig, test, args.out, fmt=args.format,
                   manifest=not args.no_manifest, progress=not args.no_progress,
+                  headlight=args.headlight,
                   sensor=sensor_from_arg(args.scene, args.sensor_depth, args.seed),
                   overwrite=args.overwrite)
     n_train, n_test = _count_frames(out, args.format)
@@ -271,7 +276,8 @@ def run_capture(args: argparse.Namespace) -> Path:
 def _run_sequence_capture(args: argparse.Namespace, kind: str, rig_kind: str) -> Path:
     rig = sequence_rig_from_args(args, rig_kind)
     common = dict(fmt=args.format, manifest=not args.no_manifest,
-                  progress=not args.no_progress, overwrite=args.overwrite,
+                  progress=not args.no_progress, headlight=args.headlight,
+                  overwrite=args.overwrite,
                   sensor=sensor_from_arg(args.scene, args.sensor_depth, args.seed))
     if kind == "dynamic":
         steps = args.frames if args.frames is not None else dyn.DEFAULT_FRAMES

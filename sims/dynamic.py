@@ -28,7 +28,7 @@ from typing import Optional
 import numpy as np
 
 from nerfbot.data.outputs import check_output_folder
-from sims.capture import (View, _scene_source, _warn_view_dependent_lighting, check_views,
+from sims.capture import (View, _scene_source, set_lighting, check_views,
                           write_views)
 from sims.joints import joint_bodies, joint_info
 from sims.manifest import scene_manifest
@@ -90,7 +90,8 @@ def capture_dynamic(scene: str | Path, rig: SequenceRig, out_dir: Path,
                     frames: int = DEFAULT_FRAMES, duration_s: Optional[float] = None,
                     test_every: int = DEFAULT_TEST_EVERY, fmt: str = "nerfstudio",
                     manifest: bool = True, progress: bool = True,
-                    sensor: Optional[DepthSensorModel] = None, overwrite: bool = False) -> Path:
+                    sensor: Optional[DepthSensorModel] = None, overwrite: bool = False,
+                    headlight: bool = False) -> Path:
     """Roll the physics of ``scene`` out and render it over time to ``out_dir``.
 
     Args:
@@ -101,7 +102,7 @@ def capture_dynamic(scene: str | Path, rig: SequenceRig, out_dir: Path,
         frames: time steps (>= 2); the dataset has ``frames * rig.views_per_step`` images.
         duration_s: simulated seconds (default: the scene's ``nerfbot_duration``).
         test_every: hold out every ``test_every``-th time step for the test split (0: none).
-        fmt, manifest, progress, sensor, overwrite: as :func:`sims.capture.capture`.
+        fmt, manifest, progress, sensor, overwrite, headlight: as :func:`sims.capture.capture`.
 
     Returns:
         ``out_dir`` (absolute). Frames are written in time order, the views of one step
@@ -116,7 +117,7 @@ def capture_dynamic(scene: str | Path, rig: SequenceRig, out_dir: Path,
     """
     model, data, name = load_sequence_scene(scene, "dynamic")
     check_output_folder(out_dir, "dataset", overwrite=overwrite)  # before the long part
-    _warn_view_dependent_lighting(model)
+    lighting = set_lighting(model, headlight)
     duration = scene_duration(model) if duration_s is None else float(duration_s)
     test_steps = held_out_steps(frames, test_every)
     roll = rollout(model, data, duration, frames)
@@ -137,6 +138,7 @@ def capture_dynamic(scene: str | Path, rig: SequenceRig, out_dir: Path,
     meta = scene_manifest(model, data, name, _scene_source(scene), moving_joints=moving,
                           time_varying=True)
     meta["bounds"] = union_bounds(model, data, roll.qpos).tolist()
+    meta["lighting"] = lighting
     meta["joint_bodies"] = joint_bodies(model, moving)
     meta["joint_info"] = joint_info(model, moving)
     meta["capture"] = {

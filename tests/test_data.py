@@ -214,6 +214,27 @@ def test_blender_rgba_composited(tmp_path, background, value):
     assert ds.times is None
 
 
+def test_rgba_images_with_opaque_alpha_are_rgb_images(tmp_path):
+    """An RGBA export whose alpha is 255 everywhere is an opaque image: the background is
+    learned (as for RGB), no alpha is kept, and the pixels are the file's RGB; one frame with
+    real transparency makes the dataset a composited one again."""
+    make_blender(tmp_path)
+    for p in tmp_path.rglob("r_*.png"):
+        img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        img[..., 3] = 255
+        cv2.imwrite(str(p), img)
+    ds = load_dataset(tmp_path)
+    assert ds.background == "learned" and all(a is None for a in ds.alphas)
+    np.testing.assert_array_equal(ds.images[0], frame_image(0))
+    img = cv2.imread(str(tmp_path / "train" / "r_1.png"), cv2.IMREAD_UNCHANGED)
+    img[0, 0, 3] = 0
+    cv2.imwrite(str(tmp_path / "train" / "r_1.png"), img)
+    mixed = load_dataset(tmp_path)
+    assert mixed.background == (1.0, 1.0, 1.0)
+    assert mixed.alphas[0] is None and mixed.alphas[1][0, 0] == 0
+    np.testing.assert_array_equal(mixed.images[1][0, 0], [255, 255, 255])
+
+
 def test_dnerf_time_defaults(tmp_path):
     make_blender(tmp_path, counts=(3, 1, 2), times={("test", 1): 0.25})
     ds = load_dataset(tmp_path / "transforms_train.json")

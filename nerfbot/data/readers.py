@@ -70,6 +70,8 @@ class _Frame:
     mask: Optional[np.ndarray]
     seg: Optional[np.ndarray]
     sensor_depth: Optional[np.ndarray] = None
+    opaque_alpha: bool = False
+    """The file had an alpha channel that is 255 everywhere (read as an opaque image)."""
 
 
 def parse_background(value) -> Optional[tuple]:
@@ -156,6 +158,9 @@ def _undistorter(spec: FrameSpec, intr: Intrinsics):
 def _load_frame(spec: FrameSpec, background: tuple) -> _Frame:
     """Read, check, composite and undistort one frame."""
     rgb, alpha = read_image(spec.image_path, f"{spec.where}.file_path")
+    opaque_alpha = alpha is not None and bool((alpha == 255).all())
+    if opaque_alpha:  # an RGBA export of an opaque photo: no background to composite
+        alpha = None
     height, width = rgb.shape[:2]
     _check_declared_size(spec, width, height)
     intr = resolve_intrinsics(spec.camera, width, height, spec.where)
@@ -190,7 +195,7 @@ def _load_frame(spec: FrameSpec, background: tuple) -> _Frame:
             mask = u.nearest(mask, False) & u.valid
         elif not u.valid.all():
             mask = u.valid.copy()
-    return _Frame(rgb, alpha, intr, depth, mask, seg, sensor)
+    return _Frame(rgb, alpha, intr, depth, mask, seg, sensor, opaque_alpha)
 
 
 def _load_frames(parsed: ParsedDataset, background: tuple) -> list[_Frame]:
@@ -352,6 +357,11 @@ def load_dataset(path: Union[str, os.PathLike], *, aabb=None, background=None) -
         _check_cameras_near_scene(specs, c2w, box)
 
     any_alpha = any(f.alpha is not None for f in frames)
+    opaque = sum(f.opaque_alpha for f in frames)
+    if opaque:
+        log.info("%d of %d images have an alpha channel that is 255 everywhere: read as opaque "
+                 "images%s", opaque, len(frames),
+                 "" if any_alpha else " (the background is learned, as for RGB images)")
     dataset_bg = bg if bg is not None else (WHITE if any_alpha else "learned")
     extras = dict(parsed.extras)
     extras.update(
