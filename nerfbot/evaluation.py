@@ -127,6 +127,24 @@ class _DepthErrorSum:
         return float(np.sqrt(self.sq / self.n)) if self.n else None
 
 
+class _PooledPSNR:
+    """PSNR pooled over the selected pixels of many images (one squared-error sum)."""
+
+    def __init__(self):
+        self.sq, self.n = 0.0, 0
+
+    def add(self, pred: np.ndarray, target: np.ndarray, mask: np.ndarray) -> None:
+        """``pred``, ``target`` (H, W, 3) in [0, 1]; ``mask`` (H, W) bool, the pixels to pool."""
+        self.sq += float(((pred[mask] - target[mask]).astype(np.float64) ** 2).sum())
+        self.n += 3 * int(mask.sum())
+
+    def value(self) -> float | None:
+        """dB; None when no pixel was pooled, inf for a perfect match."""
+        if not self.n:
+            return None
+        return float("inf") if self.sq == 0 else -10.0 * math.log10(self.sq / self.n)
+
+
 def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: int | None = None,
              with_ssim: bool = True, downscale: int = 1, supersample: int | None = None) -> dict:
     """Render every frame of ``split`` and compare with the ground truth.
@@ -138,8 +156,10 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
     the median depth (robust at object edges, where the expected depth blends two surfaces);
     psnr_objects: PSNR pooled over the pixels of those objects, their mask dilated by
     :data:`OBJECT_MASK_DILATION_PX` (in dynamic and articulated scenes the objects are what
-    moves, a small part of each image; None without segmentation or objects);
-    render_ms_per_image (median over images); num_images; downscale; supersample.
+    moves, a small part of each image; None without segmentation or objects); psnr_non_sky:
+    PSNR pooled over the pixels that show a geom (segmentation >= 0; at 1/K resolution, pixels
+    whose whole block does), so a scene that is mostly sky is not scored mostly on its sky
+    (None without segmentation); render_ms_per_image (median over images); num_images; downscale; supersample.
 
     Pixels the dataset's masks mark invalid (``mask_path``, or outside an undistorted image)
     are left out of every score: psnr takes the mean squared error over the valid pixels, ssim
@@ -173,7 +193,7 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
     all_px, obj_px = _DepthErrorSum(), _DepthErrorSum()
     all_med, obj_med = _DepthErrorSum(), _DepthErrorSum()
     objects = object_geom_ids(dataset)
-    obj_sq, obj_n = 0.0, 0
+    on_objects_psnr, non_sky_psnr = _PooledPSNR(), _PooledPSNR()
     conds = frame_conditions(dataset, dataset_conditioning(dataset))
     for slot, i in enumerate(indices):
         cond = None if conds is None else conds[i]
@@ -188,6 +208,9 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
             if with_ssim:
                 ssims.append(ssim(out["rgb"], gt, scored))
         seg = dataset.segmentations[i]
+        if seg is not None:
+            content = downscale_area((seg >= 0).astype(np.float32), w, h) >= 1.0 - 1e-4
+            non_sky_psnr.add(out["rgb"], gt, content if scored is None else content & scored)
         on_obj = None
         if objects is not None and seg is not None:
             cover = downscale_area(np.isin(seg, objects).astype(np.float32), w, h)
@@ -195,8 +218,7 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
             mask = _dilate(cover > 0, OBJECT_MASK_DILATION_PX)
             if scored is not None:
                 mask &= scored
-            obj_sq += float(((out["rgb"][mask] - gt[mask]).astype(np.float64) ** 2).sum())
-            obj_n += 3 * int(mask.sum())
+            on_objects_psnr.add(out["rgb"], gt, mask)
         valid = depth_valid_mask(dataset, i)
         if valid is not None:
             depth = dataset.depths[i]
@@ -214,8 +236,8 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
     result = {
         "psnr": float(np.mean(psnrs)),
         "ssim": float(np.mean(ssims)) if ssims else float("nan"),
-        "psnr_objects": (None if not obj_n else float("inf") if obj_sq == 0
-                         else -10.0 * math.log10(obj_sq / obj_n)),
+        "psnr_objects": on_objects_psnr.value(),
+        "psnr_non_sky": non_sky_psnr.value(),
         "depth_mae_m": all_px.mae(),
         "depth_rmse_m": all_px.rmse(),
         "depth_mae_objects_m": obj_px.mae(),

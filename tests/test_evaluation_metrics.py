@@ -1,0 +1,42 @@
+"""Scores beside whole-image PSNR: the pixels that show the scene (non-sky) and the objects."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from nerfbot.data import load_dataset
+from nerfbot.evaluation import _PooledPSNR, evaluate
+from nerfbot.methods import build_model
+from nerfbot.query import render_image
+
+
+def test_pooled_psnr_arithmetic():
+    pooled = _PooledPSNR()
+    assert pooled.value() is None  # nothing pooled
+    a = np.zeros((2, 2, 3))
+    b = np.full((2, 2, 3), 0.1)
+    pooled.add(a, b, np.array([[True, False], [False, False]]))
+    assert pooled.value() == pytest.approx(20.0)  # MSE 0.01
+    pooled.add(a, a, np.ones((2, 2), bool))  # four exact pixels dilute the error five-fold
+    assert pooled.value() == pytest.approx(20.0 + 10 * math.log10(5))
+    exact = _PooledPSNR()
+    exact.add(a, a, np.ones((2, 2), bool))
+    assert exact.value() == math.inf
+
+
+def test_non_sky_psnr_scores_only_the_pixels_that_show_a_geom(tiny_capture):
+    ds = load_dataset(tiny_capture[0])
+    model = build_model("ngp", ds.aabb, "learned", {"log2_hashmap_size": 12}, 0).eval()
+    metrics = evaluate(model, ds, "test", max_images=2, with_ssim=False)
+    sq, n = 0.0, 0
+    for slot, i in enumerate(ds.indices("test")[:2]):
+        rgb = render_image(model, ds.cameras(ds.indices("test")), slot)["rgb"]
+        content = ds.segmentations[i] >= 0
+        assert 0 < content.mean() < 1  # the tabletop shows sky and scene
+        sq += float(((rgb[content] - ds.image_float(i)[content]) ** 2).sum())
+        n += 3 * int(content.sum())
+    assert metrics["psnr_non_sky"] == pytest.approx(-10 * math.log10(sq / n), abs=1e-6)
+    assert metrics["psnr_non_sky"] != pytest.approx(metrics["psnr"], abs=1e-3)
