@@ -190,7 +190,7 @@ def run_point(point: dict, run_dir: Path) -> dict:
     from nerfbot.baking import baked_size_mb
     from nerfbot.data import load_dataset
     from nerfbot.evaluation import evaluate
-    from nerfbot.methods import get_method, option_names
+    from nerfbot.methods import bake_model, bake_option_names, get_method, option_names
     from nerfbot.models import num_params
     from nerfbot.training import CHECKPOINT, TrainConfig, Trainer
 
@@ -228,9 +228,9 @@ def run_point(point: dict, run_dir: Path) -> dict:
     if recipe:  # bake the trained source, then measure the baked renderer against it
         source_metrics = metrics
         t_bake = time.perf_counter()
-        bake_options = {k: v for k, v in options.items() if k in option_names(method)}
-        model, _, extra = recipe.bake(model, trainer.spec, ds, bake_options, int(point["seed"]),
-                                      False)
+        bake_options = {k: v for k, v in options.items() if k in bake_option_names(method)}
+        model, _, extra = bake_model(method, model, trainer.spec, ds, bake_options,
+                                     int(point["seed"]), progress=False)
         resolved["bake_seconds"] = time.perf_counter() - t_bake
         metrics = evaluate(model, ds, "test", max_images=point.get("eval_images"))
         src_ms = source_metrics["render_ms_per_image"]

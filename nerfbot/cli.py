@@ -31,6 +31,36 @@ class OneLineParser(argparse.ArgumentParser):
         self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
+class DeferredParser(OneLineParser):
+    """A sub-parser that can add its arguments when it is first used (to parse, or to print its
+    help) rather than when it is made: ``add_arguments(parser)`` may import what it needs then.
+
+    The ``capture`` command's arguments come from :mod:`sims.cli`, which imports mujoco.
+    """
+
+    def __init__(self, *args, add_arguments=None, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._add_arguments = add_arguments
+
+    def add_deferred_arguments(self) -> None:
+        """Add the deferred arguments now (once)."""
+        add, self._add_arguments = self._add_arguments, None
+        if add is not None:
+            add(self)
+
+    def parse_known_args(self, args=None, namespace=None):
+        self.add_deferred_arguments()
+        return super().parse_known_args(args, namespace)
+
+    def format_usage(self):
+        self.add_deferred_arguments()
+        return super().format_usage()
+
+    def format_help(self):
+        self.add_deferred_arguments()
+        return super().format_help()
+
+
 def one_line(exc: BaseException) -> str:
     """The message of ``exc`` on one line (an OSError's strerror and file name kept)."""
     text = str(exc) or type(exc).__name__
@@ -319,33 +349,68 @@ def cmd_eval(args) -> int:
     return 0
 
 
+def _bake_request(args) -> tuple[str, dict]:
+    """(baked method, bake options) of ``nerfbot bake``'s flags: ``--method M`` with its
+    ``--option``s, where ``--cache NP,ND`` spells fastnerf_cache with options np, nd,
+    ``--octree DEPTH`` plenoctree_octree with depth, and ``--finetune-steps N`` the option
+    finetune_steps."""
+    spelled = []  # (flag, the baked method it names or None, the options it gives)
+    if args.method is not None:
+        spelled.append(("--method", args.method, {}))
+    if args.cache is not None:
+        if len(args.cache) != 2:
+            raise UsageError(f"--cache wants NP,ND (two integers), got {args.cache}")
+        spelled.append(("--cache", "fastnerf_cache", {"np": args.cache[0], "nd": args.cache[1]}))
+    if args.octree is not None:
+        spelled.append(("--octree", "plenoctree_octree", {"depth": args.octree}))
+    if args.finetune_steps is not None:
+        spelled.append(("--finetune-steps", None, {"finetune_steps": args.finetune_steps}))
+    methods = {method for _, method, _ in spelled if method}
+    if not methods:
+        from nerfbot.method_names import BAKED
+
+        raise UsageError(f"give the baked method: --method {'|'.join(sorted(BAKED))}, or "
+                         "--cache NP,ND (fastnerf) / --octree DEPTH (plenoctree)")
+    if len(methods) > 1:
+        raise UsageError(f"{' / '.join(f for f, m, _ in spelled if m)}: these name different "
+                         f"baked methods ({', '.join(sorted(methods))}); give one")
+    options = {k: v for _, _, given in spelled for k, v in given.items()}
+    for key, value in args.option or []:
+        if key in options:
+            raise UsageError(f"--option {key}: given twice (--cache / --octree / "
+                             "--finetune-steps set it too)")
+        options[key] = value
+    return methods.pop(), options
+
+
+def _check_bake_options(method: str, options: dict) -> None:
+    """Refuse options that the recipe of ``method`` does not bake with (before anything is
+    written)."""
+    from nerfbot.methods import bake_option_names
+
+    known = bake_option_names(method)
+    for key in options:
+        if key not in known:
+            flag = "--finetune-steps" if key == "finetune_steps" else f"--option {key}"
+            raise UsageError(f"{flag}: {method} is baked with option(s) {', '.join(known)}")
+
+
 def cmd_bake(args) -> int:
-    """Bake a trained run into a faster renderer (a run folder of its own)."""
+    """Bake a trained run into a faster renderer (a run folder of its own) with the recipe of
+    the baked method in the registry, as a bench point does."""
     from nerfbot.baking import write_baked_run
     from nerfbot.data.identity import dataset_identity
     from nerfbot.data.outputs import check_output_folder
+    from nerfbot.methods import bake_model
 
-    if (args.cache is None) == (args.octree is None):
-        raise UsageError("give exactly one of --cache NP,ND (fastnerf) and "
-                         "--octree DEPTH (plenoctree)")
+    method, options = _bake_request(args)
+    _check_bake_options(method, options)
     _refuse_source_run(Path(args.run), Path(args.out))
     check_output_folder(args.out, "baked_run", overwrite=args.overwrite)  # before baking
     model, info, data, ds = _run_and_dataset(args)
-    method = info["spec"]["method"]
-    if args.cache is not None:
-        from nerfbot.fields.fastnerf import bake_cache
-
-        if len(args.cache) != 2:
-            raise UsageError(f"--cache wants NP,ND (two integers), got {args.cache}")
-        baked, spec, extra = bake_cache(model, info["spec"], args.cache[0], args.cache[1],
-                                        progress=not args.no_progress)
-    else:
-        from nerfbot.plenoctree import bake_octree
-
-        baked, spec, extra = bake_octree(model, info["spec"], args.octree, dataset=ds,
-                                         finetune_steps=args.finetune_steps, seed=args.seed,
-                                         progress=not args.no_progress)
-    extra = {"source_run": str(args.run), "source_method": method, **extra}
+    baked, spec, extra = bake_model(method, model, info["spec"], ds, options, seed=args.seed,
+                                    progress=not args.no_progress)
+    extra = {"source_run": str(args.run), "source_method": info["spec"]["method"], **extra}
     spec = {**spec, "dataset": dataset_identity(ds)}  # the dataset at ``data``, as eval checks
     write_baked_run(baked, spec, info, args.out, data=data, extra=extra,
                     overwrite=args.overwrite)
@@ -593,10 +658,15 @@ def _str_list(text: str) -> list[str]:
 
 
 def _int_list(text: str) -> list[int]:
+    """``N1,N2,...``: positive integers (grid sizes, image sizes)."""
     try:
-        return [int(v) for v in _str_list(text)]
+        values = [int(v) for v in _str_list(text)]
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}")
+        values = []
+    if not values or min(values) < 1:
+        raise argparse.ArgumentTypeError(f"expected comma-separated positive integers, got "
+                                         f"{text!r}")
+    return values
 
 
 def _option_sweep(text: str):
@@ -639,23 +709,32 @@ def cmd_bench(args) -> int:
 
 
 # -- parser ----------------------------------------------------------------------------------
-def build_parser() -> argparse.ArgumentParser:
-    from nerfbot.methods import METHODS
+def _capture_arguments(parser: argparse.ArgumentParser) -> None:
+    from sims.cli import add_capture_arguments
+
+    add_capture_arguments(parser)
+
+
+def build_parser(eager: bool = False) -> argparse.ArgumentParser:
+    """The ``nerfbot`` parser. It imports no method, torch or mujoco: the ``capture`` command's
+    arguments are added when that command is parsed or its help printed (at once with
+    ``eager``)."""
+    from nerfbot.method_names import BAKED, DESCRIPTIONS
 
     parser = OneLineParser(prog="nerfbot", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
-    sub = parser.add_subparsers(dest="command", required=True)
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=DeferredParser)
 
-    p = sub.add_parser("capture", help="render a MuJoCo scene into a posed-image dataset")
-    from sims.cli import add_capture_arguments
-
-    add_capture_arguments(p)
+    p = sub.add_parser("capture", help="render a MuJoCo scene into a posed-image dataset",
+                       add_arguments=_capture_arguments)
+    if eager:
+        p.add_deferred_arguments()
     p.set_defaults(func=cmd_capture)
 
     p = sub.add_parser("train", help="train a radiance field on a dataset")
     p.add_argument("--data", required=True, type=Path, help="dataset folder or transforms JSON")
-    p.add_argument("--method", default="ngp", choices=sorted(METHODS) + ["auto"],
-                   help="; ".join(f"{k}: {v.description}" for k, v in METHODS.items())
+    p.add_argument("--method", default="ngp", choices=sorted(DESCRIPTIONS) + ["auto"],
+                   help="; ".join(f"{k}: {v}" for k, v in DESCRIPTIONS.items())
                    + "; auto: model only what the scene manifest says it needs (see "
                      "--target-psnr / --time-budget)")
     p.add_argument("--target-psnr", type=_positive_float, default=None, metavar="DB",
@@ -724,19 +803,31 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("bake", help="bake a trained run into a faster renderer: a FastNeRF "
-                                    "cache (--cache) or a PlenOctree (--octree)")
+                                    "cache (--cache) or a PlenOctree (--octree)",
+                       description="Bake a trained run into a faster renderer (a run of its "
+                                   "own) with the baked method's recipe, as `nerfbot bench` "
+                                   "does: --method M [--option KEY=VALUE ...]; --cache NP,ND "
+                                   "spells --method fastnerf_cache --option np=NP --option "
+                                   "nd=ND, --octree DEPTH --method plenoctree_octree --option "
+                                   "depth=DEPTH, --finetune-steps N --option finetune_steps=N.")
     p.add_argument("run", type=Path, help="trained run folder (fastnerf or plenoctree)")
     p.add_argument("--out", required=True, type=Path,
                    help="run folder for the baked renderer (new or empty; not RUN)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace --out when it holds an earlier baked run")
+    p.add_argument("--method", default=None, choices=sorted(BAKED),
+                   help="the baked method: " + "; ".join(f"{k}, from a {v} run"
+                                                        for k, v in BAKED.items()))
+    p.add_argument("--option", action="append", type=parse_option, metavar="KEY=VALUE",
+                   help="bake option, e.g. np=192, depth=7, finetune_steps=200 (repeatable)")
     p.add_argument("--cache", type=_int_list, default=None, metavar="NP,ND",
                    help="FastNeRF cache: position outputs on an NP^3 grid (occupied cells "
                         "only), direction outputs on an ND x ND grid")
     p.add_argument("--octree", type=_positive_int, default=None, metavar="DEPTH",
                    help="PlenOctree: octree of this depth (leaf size = cube / 2^DEPTH)")
-    p.add_argument("--finetune-steps", type=_non_negative_int, default=0, metavar="N",
-                   help="with --octree: fine-tune the octree leaves on the training images")
+    p.add_argument("--finetune-steps", type=_non_negative_int, default=None, metavar="N",
+                   help="PlenOctree: fine-tune the octree leaves on the training images for N "
+                        "steps (default 0)")
     p.add_argument("--data", type=Path, default=None,
                    help="dataset folder (default: the one the run was trained on)")
     p.add_argument("--seed", type=_non_negative_int, default=0)
@@ -833,7 +924,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "same name wins unless the name has the builtin: prefix)")
     p.add_argument("--methods", default=["ngp"], type=_str_list, metavar="M1,M2,...",
                    help="methods to compare (default ngp; available: "
-                        + ", ".join(sorted(METHODS)) + ")")
+                        + ", ".join(sorted(DESCRIPTIONS)) + ")")
     p.add_argument("--budgets", required=True, type=_float_list, metavar="B1,B2,...",
                    help="training budgets: seconds of the training loop (or steps, see "
                         "--budget-kind)")

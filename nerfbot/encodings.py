@@ -12,6 +12,7 @@ from torch import nn
 
 from nerfbot.kernels import hashgrid as _hk
 from nerfbot.kernels import planes as _pk
+from nerfbot.kernels import use_kernels
 from nerfbot.kernels.sh import sh_encode
 
 
@@ -50,17 +51,28 @@ _C4 = (2.5033429417967046, -1.7701307697799304, 0.9461746957575601, -0.669046543
        0.6258357354491761)
 
 
-def spherical_harmonics(d: torch.Tensor, degree: int) -> torch.Tensor:
-    """Real SH basis of unit directions ``d`` (N, 3) up to ``degree`` (0..4): (N, (degree+1)^2)."""
+def _check_sh_degree(degree: int) -> None:
     if not 0 <= degree <= 4:
         raise ValueError(f"spherical harmonics degree must be 0..4, got {degree}")
-    if (d.device.type == "cpu" and d.dtype == torch.float32 and d.dim() == 2
+
+
+def spherical_harmonics(d: torch.Tensor, degree: int) -> torch.Tensor:
+    """Real SH basis of unit directions ``d`` (N, 3) up to ``degree`` (0..4): (N, (degree+1)^2)."""
+    _check_sh_degree(degree)
+    if (use_kernels(d) and d.dim() == 2
             and not (d.requires_grad and torch.is_grad_enabled())):
         # no gradient wanted: one numba pass instead of ~60 elementwise torch ops (the learned
         # background of a 128x128 image took 4 ms here, most of a baked renderer's time)
         out = torch.empty(d.shape[0], (degree + 1) ** 2)
         sh_encode(d.detach().contiguous().numpy(), degree, out.numpy())
         return out
+    return spherical_harmonics_reference(d, degree)
+
+
+def spherical_harmonics_reference(d: torch.Tensor, degree: int) -> torch.Tensor:
+    """Plain-torch twin of :func:`nerfbot.kernels.sh.sh_encode` (any device, dtype and batch
+    shape, differentiable): unit directions ``d`` (..., 3) -> (..., (degree+1)^2)."""
+    _check_sh_degree(degree)
     x, y, z = d[..., 0], d[..., 1], d[..., 2]
     out = [torch.full_like(x, _C0)]
     if degree >= 1:
@@ -302,8 +314,8 @@ class HashEncoding(nn.Module):
         # NaN positions must not reach the kernels: int(NaN) is -2^63 there, an out-of-bounds
         # table row (read by the forward pass and the position gradient, written by the table
         # gradient). The twin gives NaN features for them with in-bounds indexing.
-        fast = (self.backend == "numba" and x.device.type == "cpu" and x.dtype == torch.float32
-                and self.table.dtype == torch.float32 and not bool(torch.isnan(x).any()))
+        fast = (use_kernels(x, self.table, backend=self.backend)
+                and not bool(torch.isnan(x).any()))
         if fast:
             return _HashEncodeNumba.apply(x, self.table, self._offsets_np, self._res_np)
         return hash_encode_reference(x, self.table, self.offsets, self.res)
@@ -481,8 +493,7 @@ class PlaneEncoding(nn.Module):
             raise ValueError(f"expected points (..., {self.in_dim}), got {tuple(x.shape)}")
         if x.dim() != 2:
             return self(x.reshape(-1, self.in_dim)).reshape(*x.shape[:-1], self.out_dim)
-        fast = (self.backend == "numba" and x.device.type == "cpu" and x.dtype == torch.float32
-                and self.table.dtype == torch.float32 and not x.requires_grad)
+        fast = use_kernels(x, self.table, backend=self.backend) and not x.requires_grad
         if fast:
             return _PlaneEncodeNumba.apply(x, self.table, self._offsets_np, self._res_np,
                                            self._pairs_np)

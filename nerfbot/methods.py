@@ -1,13 +1,21 @@
-"""The registry of methods: a name -> how to build its model and how to train it.
+"""The registry of methods: a name -> its complete defaults, how to build its model and how to
+train it.
 
-This is the only place that knows which field goes with which sampler; everything else asks
-the registry.
+This is the only place that knows which field goes with which sampler, and the only place a
+method's option defaults are set: each entry holds instantiated configs (dataclasses) whose
+values are the method's effective defaults (:func:`method_defaults`); ``--option key=value``
+replaces a value by its field name. An option name may belong to one config of a method only
+(:func:`register_method` refuses a second). Everything else asks the registry.
+
+Adding a variant: a field in ``nerfbot/fields/`` (and a model in :mod:`nerfbot.models` if no
+existing renderer fits) and one :func:`register_method` entry; for the command line, also its
+line in :mod:`nerfbot.method_names`, which lists the methods without importing any of this.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields, replace
+from dataclasses import asdict, dataclass, fields, is_dataclass, replace
 from typing import Callable, Optional
 
 import numpy as np
@@ -16,10 +24,10 @@ from nerfbot.background import make_background
 from nerfbot.conditioning import Conditioning
 from nerfbot.fields.articulated import ArticulatedField, ArticulatedFieldConfig
 from nerfbot.fields.dnerf import DNeRFField, DNeRFFieldConfig
-from nerfbot.fields.fastnerf import FastNeRFField, FastNeRFFieldConfig
+from nerfbot.fields.fastnerf import FastNeRFField, FastNeRFFieldConfig, bake_cache
 from nerfbot.fields.fastnerf_cache import FastNeRFCacheConfig, FastNeRFCacheModel
-from nerfbot.fields.kilonerf import (KILONERF_OCCUPANCY_DEFAULTS, KiloNeRFConfig, KiloNeRFField,
-                                      KiloNeRFFieldConfig, KiloNeRFModel)
+from nerfbot.fields.kilonerf import (KiloNeRFConfig, KiloNeRFField, KiloNeRFFieldConfig,
+                                      KiloNeRFModel)
 from nerfbot.fields.mipnerf import (MipNeRFField, MipNeRFFieldConfig, MipNeRFModel,
                                     MipNeRFModelConfig)
 from nerfbot.fields.nerf import NeRFField, NeRFFieldConfig
@@ -30,7 +38,30 @@ from nerfbot.fields.tensorf import TensoRFField, TensoRFFieldConfig
 from nerfbot.fields.tnerf import TNeRFField, TNeRFFieldConfig
 from nerfbot.models import (HierarchicalModel, HierarchicalModelConfig, Model, OccupancyModel,
                             OccupancyModelConfig)
-from nerfbot.plenoctree import PlenOctreeConfig, PlenOctreeModel
+from nerfbot.plenoctree import OctreeBakeConfig, PlenOctreeConfig, PlenOctreeModel, bake_octree
+
+
+@dataclass(frozen=True)
+class BakeRecipe:
+    """How a baked method is made: train ``source``, then ``bake`` the trained model.
+
+    Attributes:
+        source: the method whose trained runs are baked.
+        bake: (trained model, its run spec, dataset, configs, seed, progress) -> (baked model,
+            baked spec, extra); ``configs`` are the baked method's ``configs`` followed by the
+            recipe's own, with the bake options applied; ``extra`` is a JSON-able report
+            (sizes, counts) written to the baked run's ``bake.json``.
+        reads: the options of the baked method's ``configs`` that the bake sets (e.g. ``np``,
+            ``depth``); the baked renderer's other options come from the source run or keep
+            their defaults, so they are not bake options.
+        configs: instantiated configs of options of the bake alone (e.g. fine-tuning steps),
+            which the baked renderer does not keep.
+    """
+
+    source: str
+    bake: Callable[..., tuple]
+    reads: tuple = ()
+    configs: tuple = ()
 
 
 @dataclass(frozen=True)
@@ -38,36 +69,24 @@ class MethodSpec:
     """How to build and train one method.
 
     Attributes:
-        build: (aabb (2, 3), background spec, options dict, seed, Conditioning) -> Model.
+        build: (aabb (2, 3), background spec, configs, seed, Conditioning) -> Model, where
+            ``configs`` are this entry's ``configs`` in their order, with the options applied.
         lr: Adam learning rate.
         adam_eps: Adam epsilon (tiny for hash tables, as in Instant-NGP).
         lr_final_factor: the learning rate decays exponentially to lr * this at the end of the
             budget.
-        description: one line for ``nerfbot train --help``.
-        configs: the config dataclasses whose fields are the method's options.
+        configs: instantiated config dataclasses: their fields are the method's options, their
+            values its defaults.
+        baked_from: set for renderers made by ``nerfbot bake`` from a trained run rather than
+            trained.
     """
 
     build: Callable[..., Model]
     lr: float
     adam_eps: float
     lr_final_factor: float
-    description: str
     configs: tuple = ()
-    baked_from: Optional["BakeRecipe"] = None
-    """Set for renderers made by ``nerfbot bake`` from a trained run rather than trained."""
-
-
-@dataclass(frozen=True)
-class BakeRecipe:
-    """How a baked method is made: train ``source``, then ``bake`` the trained model.
-
-    ``bake(model, spec, dataset, options, seed, progress) -> (baked model, baked spec, extra)``
-    takes the baked method's own options (e.g. ``np``, ``nd`` or ``depth``); ``extra`` is a
-    JSON-able report (sizes, counts) written to the baked run's ``bake.json``.
-    """
-
-    source: str
-    bake: Callable[..., tuple]
+    baked_from: Optional[BakeRecipe] = None
 
 
 def _typed(name: str, value, default):
@@ -107,24 +126,76 @@ def _typed(name: str, value, default):
 
 
 def _apply(config, options: dict):
-    """Dataclass ``config`` with the ``options`` whose keys match its field names, each checked
-    against the type of its default (the config's own checks then run on the new values)."""
+    """A copy of dataclass ``config`` with the ``options`` whose keys match its field names,
+    each checked against the type of its value in ``config`` (the config's own checks then run
+    on the new values)."""
     names = {f.name for f in fields(config)}
     picked = {k: _typed(k, v, getattr(config, k)) for k, v in options.items() if k in names}
     return replace(config, **picked)
 
 
-def _static_occupancy(field_cls, config_cls, occupancy_defaults: dict | None = None):
-    """Build function of a static field (built as ``field_cls(aabb, config, seed=seed)``)
-    marched over an occupancy grid (``occupancy_defaults``: the method's own defaults of
-    :class:`OccupancyModelConfig` fields)."""
-    def build(aabb, background, options, seed, conditioning) -> Model:
-        field = field_cls(aabb, _apply(config_cls(), options), seed=seed)
-        return OccupancyModel(field, make_background(background), aabb,
-                              _apply(OccupancyModelConfig(**(occupancy_defaults or {})), options))
+# -- build functions ---------------------------------------------------------------------------
+def occupancy_build(field_cls) -> Callable[..., Model]:
+    """Build function of a static field, ``field_cls(aabb, field config, seed=seed)``, marched
+    over an occupancy grid; its entry's configs are (field config, OccupancyModelConfig)."""
+    def build(aabb, background, configs, seed, conditioning) -> Model:
+        field_config, renderer = configs
+        return OccupancyModel(field_cls(aabb, field_config, seed=seed),
+                              make_background(background), aabb, renderer)
     return build
 
 
+def _conditioned_ngp_build(field_cls) -> Callable[..., Model]:
+    """Build function of an ngp field conditioned on time or joints, ``field_cls(aabb,
+    conditioning, NGPFieldConfig, its own config, seed=seed)``, marched over an occupancy grid;
+    its entry's configs are (NGPFieldConfig, its own config, OccupancyModelConfig)."""
+    def build(aabb, background, configs, seed, conditioning) -> Model:
+        ngp_config, own_config, renderer = configs
+        field = field_cls(aabb, conditioning, ngp_config, own_config, seed=seed)
+        return OccupancyModel(field, make_background(background), aabb, renderer)
+    return build
+
+
+def _build_nerf(aabb, background, configs, seed, conditioning) -> Model:
+    field_config, renderer = configs
+    return HierarchicalModel(NeRFField(aabb, field_config), NeRFField(aabb, field_config),
+                             make_background(background), aabb, renderer)
+
+
+def _build_mipnerf(aabb, background, configs, seed, conditioning) -> Model:
+    field_config, renderer = configs
+    return MipNeRFModel(MipNeRFField(aabb, field_config), make_background(background), aabb,
+                        renderer)
+
+
+def _build_kilonerf(aabb, background, configs, seed, conditioning) -> Model:
+    field_config, kilo_config, renderer = configs
+    field = KiloNeRFField(aabb, field_config, seed=seed)
+    return KiloNeRFModel(field, make_background(background), aabb, renderer, kilo_config)
+
+
+def _build_fastnerf_cache(aabb, background, configs, seed, conditioning) -> Model:
+    (cache_config,) = configs
+    return FastNeRFCacheModel(aabb, make_background(background), cache_config)
+
+
+def _build_plenoctree_octree(aabb, background, configs, seed, conditioning) -> Model:
+    (octree_config,) = configs
+    return PlenOctreeModel(aabb, make_background(background), octree_config)
+
+
+def _bake_fastnerf_cache(model, spec, dataset, configs, seed, progress):
+    (cache_config,) = configs
+    return bake_cache(model, spec, cache_config.np, cache_config.nd, progress=progress)
+
+
+def _bake_plenoctree_octree(model, spec, dataset, configs, seed, progress):
+    octree_config, bake_config = configs
+    return bake_octree(model, spec, octree_config.depth, dataset=dataset,
+                       finetune_steps=bake_config.finetune_steps, seed=seed, progress=progress)
+
+
+# -- defaults shared by several entries --------------------------------------------------------
 #: ngp's own renderer defaults: 2 x 2 rays per pixel from half the budget on. On the tabletop in
 #: 180 s: +1.2 dB test PSNR and the objects' depth error 2.80 -> 2.0-2.4 cm; from the start, the
 #: large box of a capture without a manifest lost 2 dB (BENCHMARKS.md, issue 2, session 10).
@@ -132,174 +203,181 @@ def _static_occupancy(field_cls, config_cls, occupancy_defaults: dict | None = N
 #: (BENCHMARKS.md, issue 2, session 12). 2^15 samples per step, not 2^17: on a CPU a time
 #: budget buys few steps, and small objects need steps more than large batches (180 s on the
 #: tabletop: 1183 steps, 35.8 dB, objects 0.9 cm, against 439 steps, 33.6 dB, 2.0 cm; session 13).
-NGP_OCCUPANCY_DEFAULTS = {"supersample": 2, "supersample_from": 0.5, "density_noise": 1.0,
-                          "samples_per_batch": 1 << 15}
+NGP_RENDERER = OccupancyModelConfig(supersample=2, supersample_from=0.5, density_noise=1.0,
+                                    samples_per_batch=1 << 15)
 
-_build_ngp = _static_occupancy(NGPField, NGPFieldConfig, NGP_OCCUPANCY_DEFAULTS)
+#: The renderer defaults of the conditioned ngp family (tnerf, dnerf, articulated) differ from
+#: ngp's in exactly these four values (tests/test_registry.py holds them to it): one ray per
+#: pixel throughout, no log-density noise, 2^17 samples per step. Their results in
+#: BENCHMARKS.md (issue 5) were measured with these; whether ngp's values help them is
+#: unmeasured.
+CONDITIONED_NGP_RENDERER = OccupancyModelConfig(supersample=1, supersample_from=0.0,
+                                                density_noise=0.0, samples_per_batch=1 << 17)
 
-
-def _build_nerf(aabb, background, options, seed, conditioning) -> Model:
-    cfg = _apply(NeRFFieldConfig(), options)
-    return HierarchicalModel(NeRFField(aabb, cfg), NeRFField(aabb, cfg), make_background(background),
-                             aabb, _apply(HierarchicalModelConfig(), options))
-
-
-def _build_mipnerf(aabb, background, options, seed, conditioning) -> Model:
-    field = MipNeRFField(aabb, _apply(MipNeRFFieldConfig(), options))
-    return MipNeRFModel(field, make_background(background), aabb,
-                        _apply(MipNeRFModelConfig(), options))
-
-
-def _build_tnerf(aabb, background, options, seed, conditioning) -> Model:
-    field = TNeRFField(aabb, conditioning, _apply(NGPFieldConfig(), options),
-                       _apply(TNeRFFieldConfig(), options), seed=seed)
-    return OccupancyModel(field, make_background(background), aabb,
-                          _apply(OccupancyModelConfig(), options))
+#: kilonerf's renderer defaults. Its speed comes from skipping empty space, so its occupancy grid
+#: is finer (128^3) and stricter (a cell counts when one marching step through it is >= 15%
+#: opaque, or denser than average) than ngp's, and its steps are twice as long (128 per cube
+#: diagonal). Distilled from the 180 s ngp run of the 128x128 tabletop (32.8 dB) for 500 steps,
+#: ngp's settings (256 steps, 64^3 grid at 0.01) gave 33.2 dB test PSNR with 91k samples per
+#: image, these 32.8 dB with 31k.
+KILONERF_RENDERER = OccupancyModelConfig(render_steps=128, grid_resolution=128,
+                                         grid_threshold=0.15)
 
 
-def _build_dnerf(aabb, background, options, seed, conditioning) -> Model:
-    field = DNeRFField(aabb, conditioning, _apply(NGPFieldConfig(), options),
-                       _apply(DNeRFFieldConfig(), options), seed=seed)
-    return OccupancyModel(field, make_background(background), aabb,
-                          _apply(OccupancyModelConfig(), options))
+def conditioned_ngp_method(field_cls, own_config) -> MethodSpec:
+    """The entry of a conditioned ngp variant: ``field_cls`` (see
+    :func:`_conditioned_ngp_build`) with ngp's field defaults, ``own_config`` (an instance) and
+    :data:`CONDITIONED_NGP_RENDERER`, trained with ngp's optimiser settings."""
+    return MethodSpec(_conditioned_ngp_build(field_cls), lr=1e-2, adam_eps=1e-15,
+                      lr_final_factor=0.1,
+                      configs=(NGPFieldConfig(), own_config, CONDITIONED_NGP_RENDERER))
 
 
-def _build_articulated(aabb, background, options, seed, conditioning) -> Model:
-    field = ArticulatedField(aabb, conditioning, _apply(NGPFieldConfig(), options),
-                             _apply(ArticulatedFieldConfig(), options), seed=seed)
-    return OccupancyModel(field, make_background(background), aabb,
-                          _apply(OccupancyModelConfig(), options))
+# -- the registry ------------------------------------------------------------------------------
+METHODS: dict[str, MethodSpec] = {}
 
 
-def _build_kilonerf(aabb, background, options, seed, conditioning) -> Model:
-    field = KiloNeRFField(aabb, _apply(KiloNeRFFieldConfig(), options), seed=seed)
-    return KiloNeRFModel(field, make_background(background), aabb,
-                         _apply(OccupancyModelConfig(**KILONERF_OCCUPANCY_DEFAULTS), options),
-                         _apply(KiloNeRFConfig(), options))
+def _all_configs(spec: MethodSpec) -> tuple:
+    """The entry's configs and, for a baked method, its recipe's."""
+    return spec.configs + (spec.baked_from.configs if spec.baked_from else ())
 
 
-def _build_fastnerf_cache(aabb, background, options, seed, conditioning) -> Model:
-    return FastNeRFCacheModel(aabb, make_background(background),
-                              _apply(FastNeRFCacheConfig(), options))
+def register_method(name: str, spec: MethodSpec) -> MethodSpec:
+    """Add ``spec`` to the registry as method ``name`` (returned).
+
+    ValueError when ``name`` is taken, a config is a class rather than an instance, an option
+    name belongs to two of its configs (an option would silently set both), or a bake recipe
+    reads an option its method does not have.
+    """
+    if name in METHODS:
+        raise ValueError(f"method {name!r} is already registered")
+    owner: dict[str, str] = {}
+    for config in _all_configs(spec):
+        if not is_dataclass(config) or isinstance(config, type):
+            raise ValueError(f"method {name!r}: configs must be dataclass instances (their "
+                             f"values are the defaults), got {config!r}")
+        for f in fields(config):
+            if f.name in owner:
+                raise ValueError(f"method {name!r}: option {f.name!r} is in both "
+                                 f"{owner[f.name]} and {type(config).__name__}")
+            owner[f.name] = type(config).__name__
+    if spec.baked_from:
+        missing = set(spec.baked_from.reads) - {f.name for c in spec.configs for f in fields(c)}
+        if missing:
+            raise ValueError(f"method {name!r}: its bake recipe reads unknown option(s) "
+                             f"{sorted(missing)}")
+    METHODS[name] = spec
+    return spec
 
 
-def _bake_fastnerf_cache(model, spec, dataset, options, seed, progress):
-    from nerfbot.fields.fastnerf import bake_cache
-
-    cfg = _apply(FastNeRFCacheConfig(), options)
-    return bake_cache(model, spec, cfg.np, cfg.nd, progress=progress)
-
-
-def _bake_plenoctree_octree(model, spec, dataset, options, seed, progress):
-    from nerfbot.plenoctree import bake_octree
-
-    cfg = _apply(PlenOctreeConfig(), options)
-    return bake_octree(model, spec, cfg.depth, dataset=dataset, seed=seed, progress=progress)
-
-
-def _build_plenoctree_octree(aabb, background, options, seed, conditioning) -> Model:
-    return PlenOctreeModel(aabb, make_background(background),
-                           _apply(PlenOctreeConfig(), options))
-
-
-METHODS: dict[str, MethodSpec] = {
-    "ngp": MethodSpec(_build_ngp, lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
-                      description="Instant-NGP hash grid + occupancy-grid marching (fast default)",
-                      configs=(NGPFieldConfig, OccupancyModelConfig)),
-    "plenoxels": MethodSpec(
-        _static_occupancy(PlenoxelField, PlenoxelFieldConfig),
-        lr=1e-1, adam_eps=1e-15, lr_final_factor=0.1,
-        description="Plenoxels: sparse voxel grid of density + SH colour, "
-                    "no network, coarse-to-fine with pruning",
-        configs=(PlenoxelFieldConfig, OccupancyModelConfig)),
-    "nerf": MethodSpec(_build_nerf, lr=5e-4, adam_eps=1e-8, lr_final_factor=0.1,
-                       description="vanilla NeRF, positional encoding, coarse + fine (reference)",
-                       configs=(NeRFFieldConfig, HierarchicalModelConfig)),
-    "mipnerf": MethodSpec(_build_mipnerf, lr=5e-4, adam_eps=1e-8, lr_final_factor=0.1,
-                          description="mip-NeRF: cones, integrated positional encoding, one MLP "
-                                      "for coarse + fine (anti-aliased at lower resolutions)",
-                          configs=(MipNeRFFieldConfig, MipNeRFModelConfig)),
-    "tensorf": MethodSpec(
-        _static_occupancy(TensoRFField, TensoRFFieldConfig),
-        lr=2e-2, adam_eps=1e-15, lr_final_factor=0.1,
-        description="TensoRF: vector-matrix factorised grids, coarse-to-fine "
-                    "upsampling + occupancy-grid marching",
-        configs=(TensoRFFieldConfig, OccupancyModelConfig)),
-    "tnerf": MethodSpec(_build_tnerf, lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
-                        description="T-NeRF: time or joints as an extra input of an NGP field",
-                        configs=(NGPFieldConfig, TNeRFFieldConfig, OccupancyModelConfig)),
-    "dnerf": MethodSpec(_build_dnerf, lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
-                        description="D-NeRF: deformation (space-time planes) into a canonical "
-                                    "NGP field",
-                        configs=(NGPFieldConfig, DNeRFFieldConfig, OccupancyModelConfig)),
-    "articulated": MethodSpec(_build_articulated, lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
-                              description="one NGP field per rigid part, placed by forward "
-                                          "kinematics of the joints",
-                              configs=(NGPFieldConfig, ArticulatedFieldConfig,
-                                       OccupancyModelConfig)),
-    "plenoctree": MethodSpec(
-        _static_occupancy(NeRFSHField, NeRFSHFieldConfig),
-        lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
-        description="PlenOctrees' NeRF-SH: hash grid -> density + SH colour "
-                    "(no direction input); bake with `nerfbot bake --octree`",
-        configs=(NeRFSHFieldConfig, OccupancyModelConfig)),
-    "plenoctree_octree": MethodSpec(_build_plenoctree_octree, lr=1e-2, adam_eps=1e-15,
-                                    lr_final_factor=0.1,
-                                    description="a baked PlenOctree (made by `nerfbot bake "
-                                                "--octree` from a plenoctree run; not trained "
-                                                "from scratch)",
-                                    configs=(PlenOctreeConfig,),
-                                    baked_from=BakeRecipe("plenoctree", _bake_plenoctree_octree)),
-    "fastnerf": MethodSpec(
-        _static_occupancy(FastNeRFField, FastNeRFFieldConfig),
-        lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
-        description="FastNeRF: position net (hash grid) x direction net, "
-                    "colour = sigmoid(sum_i beta_i(d) u_i(x)); cacheable "
-                    "with `nerfbot bake --cache`",
-        configs=(FastNeRFFieldConfig, OccupancyModelConfig)),
-    "kilonerf": MethodSpec(_build_kilonerf, lr=5e-3, adam_eps=1e-8, lr_final_factor=0.1,
-                           description="KiloNeRF: a 16^3 grid of tiny MLPs, distilled from a "
-                                       "trained run (option teacher_run) then fine-tuned",
-                           configs=(KiloNeRFFieldConfig, KiloNeRFConfig,
-                                    OccupancyModelConfig)),
-    "fastnerf_cache": MethodSpec(_build_fastnerf_cache, lr=1e-2, adam_eps=1e-15,
-                                 lr_final_factor=0.1,
-                                 description="baked FastNeRF cache (made by `nerfbot bake "
-                                             "--cache NP,ND`; not trainable)",
-                                 configs=(FastNeRFCacheConfig,),
-                                 baked_from=BakeRecipe("fastnerf", _bake_fastnerf_cache)),
-}
+register_method("ngp", MethodSpec(
+    occupancy_build(NGPField), lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
+    configs=(NGPFieldConfig(), NGP_RENDERER)))
+register_method("plenoxels", MethodSpec(
+    occupancy_build(PlenoxelField), lr=1e-1, adam_eps=1e-15, lr_final_factor=0.1,
+    configs=(PlenoxelFieldConfig(), OccupancyModelConfig())))
+register_method("nerf", MethodSpec(
+    _build_nerf, lr=5e-4, adam_eps=1e-8, lr_final_factor=0.1,
+    configs=(NeRFFieldConfig(), HierarchicalModelConfig())))
+register_method("mipnerf", MethodSpec(
+    _build_mipnerf, lr=5e-4, adam_eps=1e-8, lr_final_factor=0.1,
+    configs=(MipNeRFFieldConfig(), MipNeRFModelConfig())))
+register_method("tensorf", MethodSpec(
+    occupancy_build(TensoRFField), lr=2e-2, adam_eps=1e-15, lr_final_factor=0.1,
+    configs=(TensoRFFieldConfig(), OccupancyModelConfig())))
+register_method("tnerf", conditioned_ngp_method(TNeRFField, TNeRFFieldConfig()))
+register_method("dnerf", conditioned_ngp_method(DNeRFField, DNeRFFieldConfig()))
+register_method("articulated",
+                conditioned_ngp_method(ArticulatedField, ArticulatedFieldConfig()))
+register_method("plenoctree", MethodSpec(
+    occupancy_build(NeRFSHField), lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
+    configs=(NeRFSHFieldConfig(), OccupancyModelConfig())))
+register_method("plenoctree_octree", MethodSpec(
+    _build_plenoctree_octree, lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
+    configs=(PlenOctreeConfig(),),
+    baked_from=BakeRecipe("plenoctree", _bake_plenoctree_octree, reads=("depth",),
+                          configs=(OctreeBakeConfig(),))))
+register_method("fastnerf", MethodSpec(
+    occupancy_build(FastNeRFField), lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
+    configs=(FastNeRFFieldConfig(), OccupancyModelConfig())))
+register_method("kilonerf", MethodSpec(
+    _build_kilonerf, lr=5e-3, adam_eps=1e-8, lr_final_factor=0.1,
+    configs=(KiloNeRFFieldConfig(), KiloNeRFConfig(), KILONERF_RENDERER)))
+register_method("fastnerf_cache", MethodSpec(
+    _build_fastnerf_cache, lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
+    configs=(FastNeRFCacheConfig(),),
+    baked_from=BakeRecipe("fastnerf", _bake_fastnerf_cache, reads=("np", "nd"))))
 
 
-def option_names(method: str) -> list[str]:
-    """Names of the config fields a method accepts as ``--option key=value``."""
-    return sorted(f.name for c in get_method(method).configs for f in fields(c))
-
-
-def sweep_option_names(method: str) -> list[str]:
-    """Options a bench point of ``method`` takes: its own and, for a baked method, those of
-    the method it is baked from (used to train the source)."""
-    recipe = get_method(method).baked_from
-    names = set(option_names(method))
-    if recipe is not None:
-        names |= set(option_names(recipe.source))
-    return sorted(names)
-
-
+# -- queries -----------------------------------------------------------------------------------
 def get_method(name: str) -> MethodSpec:
     if name not in METHODS:
         raise ValueError(f"unknown method {name!r}; available: {', '.join(sorted(METHODS))}")
     return METHODS[name]
 
 
+def method_defaults(method: str) -> dict:
+    """Every option of ``method`` -> its effective default (for a baked method, its bake
+    recipe's options too)."""
+    out = {}
+    for config in _all_configs(get_method(method)):
+        out.update(asdict(config))
+    return out
+
+
+def option_names(method: str) -> list[str]:
+    """Names of the config fields a method is built with (``--option key=value``)."""
+    return sorted(f.name for c in get_method(method).configs for f in fields(c))
+
+
+def bake_option_names(method: str) -> list[str]:
+    """Options a baked ``method`` is baked with (those its recipe reads, and its own); [] for a
+    method that is trained."""
+    recipe = get_method(method).baked_from
+    if recipe is None:
+        return []
+    return sorted(set(recipe.reads) | {f.name for c in recipe.configs for f in fields(c)})
+
+
+def sweep_option_names(method: str) -> list[str]:
+    """Options a bench point of ``method`` takes: its own and, for a baked method, its bake
+    options and those of the method it is baked from (used to train the source)."""
+    recipe = get_method(method).baked_from
+    if recipe is None:
+        return option_names(method)
+    return sorted(set(bake_option_names(method)) | set(option_names(recipe.source)))
+
+
 def build_model(method: str, aabb, background="learned", options: dict | None = None,
                 seed: int = 0, conditioning: Conditioning | None = None) -> Model:
     """Build the model of ``method`` for a scene with bounds ``aabb`` (2, 3) metres and
     ``conditioning`` (static when None; static methods ignore it)."""
+    spec = get_method(method)
     options = dict(options or {})
     unknown = set(options) - set(option_names(method))
     if unknown:
         raise ValueError(f"method {method!r} has no option(s) {sorted(unknown)}; "
                          f"known: {option_names(method)}")
-    return get_method(method).build(np.asarray(aabb, dtype=np.float32), background, options, seed,
-                                    conditioning or Conditioning())
+    configs = tuple(_apply(c, options) for c in spec.configs)
+    return spec.build(np.asarray(aabb, dtype=np.float32), background, configs, seed,
+                      conditioning or Conditioning())
+
+
+def bake_model(method: str, model: Model, spec: dict, dataset, options: dict | None = None,
+               seed: int = 0, progress: bool = True) -> tuple:
+    """Bake ``model``, a trained run of the source of baked ``method`` with run ``spec``, by
+    the method's recipe with ``options`` (:func:`bake_option_names`); ``dataset``: the
+    training data (fine-tuning and pruning use it). Returns (baked model, baked spec, extra)."""
+    recipe = get_method(method).baked_from
+    if recipe is None:
+        raise ValueError(f"method {method!r} is trained, not baked")
+    if spec.get("method") != recipe.source:
+        raise ValueError(f"method {method!r} is baked from a {recipe.source!r} run, not a "
+                         f"{spec.get('method')!r} one")
+    options = dict(options or {})
+    unknown = set(options) - set(bake_option_names(method))
+    if unknown:
+        raise ValueError(f"method {method!r} is baked with option(s) "
+                         f"{bake_option_names(method)}, not {sorted(unknown)}")
+    configs = tuple(_apply(c, options) for c in _all_configs(get_method(method)))
+    return recipe.bake(model, spec, dataset, configs, seed, progress)

@@ -37,6 +37,22 @@ def octahedral_decode(uv: torch.Tensor) -> torch.Tensor:
     return F.normalize(torch.stack([x, y, z], -1), dim=-1)
 
 
+def octahedral_lookup(table: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+    """Bilinear lookup of ``table`` (ND, ND, C), values at the vertices of
+    :func:`direction_grid`, at unit directions ``d`` (N, 3): (N, C). The plain-torch twin of
+    :func:`nerfbot.kernels.octahedral.lookup` (any device, differentiable w.r.t. the table)."""
+    nd = table.shape[0]
+    uv = octahedral_encode(d.double())
+    f = (uv + 1.0) * 0.5 * (nd - 1)
+    i = torch.floor(f).long().clamp(0, nd - 2)
+    w = (f - i).float()
+    wu, wv = w[:, 0:1], w[:, 1:2]
+    return ((1 - wu) * (1 - wv) * table[i[:, 0], i[:, 1]]
+            + wu * (1 - wv) * table[i[:, 0] + 1, i[:, 1]]
+            + (1 - wu) * wv * table[i[:, 0], i[:, 1] + 1]
+            + wu * wv * table[i[:, 0] + 1, i[:, 1] + 1])
+
+
 def direction_grid(nd: int) -> torch.Tensor:
     """The ND x ND unit directions (ND, ND, 3) at the vertices of the octahedral grid: vertex
     (i, j) at (u, v) = (-1 + 2i / (ND - 1), -1 + 2j / (ND - 1))."""

@@ -29,6 +29,7 @@ from nerfbot.cameras import Rays
 from nerfbot.fields.base import BoxNormalizer, Field
 from nerfbot.fields.nerfsh import NeRFSHField, sh_color
 from nerfbot.kernels import octree as _ok
+from nerfbot.kernels import use_kernels
 from nerfbot.models import Model
 from nerfbot.rendering import EMPTY_OPACITY, RenderOutput, composite
 from nerfbot.sampling import ray_aabb
@@ -257,7 +258,7 @@ class OctreeField(Field):
 
     def leaf_index(self, x: torch.Tensor) -> torch.Tensor:
         """(N,) int64 leaf holding each point x (N, 3), -1 where there is none."""
-        if x.device.type != "cpu":
+        if not use_kernels(x, dtype=None):
             return octree_lookup_reference(x, self.child, self.normalize.cube_min, self.cube_size)
         out = np.empty(x.shape[0], np.int64)
         _ok.octree_lookup(x.detach().float().contiguous().numpy(), self.child.contiguous().numpy(),
@@ -302,6 +303,20 @@ class PlenOctreeConfig:
     """Rays per batch when fine-tuning the leaves."""
 
 
+@dataclass
+class OctreeBakeConfig:
+    """Options of baking a PlenOctree that the baked renderer does not keep (the bake recipe
+    of ``plenoctree_octree``; the octree's ``depth`` is a :class:`PlenOctreeConfig` option)."""
+
+    finetune_steps: int = 0
+    """Steps of fine-tuning the baked leaves on the training images (:func:`finetune_octree`);
+    0: none."""
+
+    def __post_init__(self):
+        if self.finetune_steps < 0:
+            raise ValueError(f"option finetune_steps: must be >= 0, got {self.finetune_steps}")
+
+
 class PlenOctreeModel(Model):
     """Renders a baked :class:`OctreeField` (PlenOctrees' piecewise-constant volume).
 
@@ -329,7 +344,7 @@ class PlenOctreeModel(Model):
         return self.config.rays_per_batch
 
     def render_rays(self, rays: Rays, generator=None, cond=None) -> RenderOutput:
-        if self.training or rays.origins.device.type != "cpu":
+        if self.training or not use_kernels(rays.origins, dtype=None):
             return self.render_segments(rays, with_median=not self.training)
         return self._render_fused(rays)
 
@@ -340,8 +355,8 @@ class PlenOctreeModel(Model):
         :func:`~nerfbot.rendering.composite`. ``reference``: use the plain-torch walker."""
         data = self.field.leaf_data if leaf_data is None else leaf_data
         t_near, t_far, _ = ray_aabb(rays.origins, rays.directions, self.aabb)
-        walk = walk_segments_reference if reference or rays.origins.device.type != "cpu" \
-            else walk_segments
+        fast = not reference and use_kernels(rays.origins, dtype=None)
+        walk = walk_segments if fast else walk_segments_reference
         ray, leaf, ts, te = walk(rays.origins, rays.directions, t_near, t_far, self.field.child,
                                  data[:, 0].detach(), self.field.normalize.cube_min,
                                  self.field.cube_size, self.config.early_stop_transmittance)

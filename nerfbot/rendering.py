@@ -24,6 +24,8 @@ from typing import Optional
 
 import torch
 
+from nerfbot.kernels import use_kernels
+
 #: Opacity below which a ray counts as empty: its depth is the far bound, not 0 / 0.
 EMPTY_OPACITY = 1e-6
 
@@ -88,8 +90,17 @@ def segment_exclusive_cumsum(values: torch.Tensor, ray_indices: torch.Tensor,
     v = values.double()
     if not v.numel():
         return v
-    if v.device.type == "cpu":
+    if use_kernels(v, dtype=None):
         return _SegmentScan.apply(v, ray_indices)
+    return segment_exclusive_cumsum_reference(v, ray_indices, starts)
+
+
+def segment_exclusive_cumsum_reference(values: torch.Tensor, ray_indices: torch.Tensor,
+                                       starts: torch.Tensor) -> torch.Tensor:
+    """Plain-torch twin of the per-ray scan (:mod:`nerfbot.kernels.scan`; any device,
+    differentiable): a global float64 cumsum of ``values`` (M,) minus each ray's offset
+    (``starts``: (R,) first packed index of every ray); (M,) float64."""
+    v = values.double()
     exclusive = torch.cumsum(v, 0) - v
     return exclusive - exclusive[starts[ray_indices]]
 

@@ -11,12 +11,7 @@ from torch import nn
 
 from nerfbot.kernels import boxes as _bk
 from nerfbot.kernels import marching as _mk
-
-
-def _kernel_ready(*tensors: torch.Tensor) -> bool:
-    """The numba kernels take float32 CPU tensors that need no gradient."""
-    return all(t.device.type == "cpu" and t.dtype == torch.float32 and not t.requires_grad
-               for t in tensors)
+from nerfbot.kernels import use_kernels
 
 
 def ray_aabb(origins: torch.Tensor, directions: torch.Tensor, aabb: torch.Tensor,
@@ -32,8 +27,10 @@ def ray_aabb(origins: torch.Tensor, directions: torch.Tensor, aabb: torch.Tensor
         Float32 CPU tensors without gradients go through the numba twin
         (:func:`nerfbot.kernels.boxes.ray_aabb`), which gives the same bits.
     """
-    if (_kernel_ready(origins, directions, aabb) and origins.dim() == 2
-            and origins.shape == directions.shape and origins.shape[-1] == 3):
+    if (use_kernels(origins, directions, aabb)
+            and not (origins.requires_grad or directions.requires_grad or aabb.requires_grad)
+            and origins.dim() == 2 and origins.shape == directions.shape
+            and origins.shape[-1] == 3):
         n = origins.shape[0]
         t_near, t_far = torch.empty(n), torch.empty(n)
         hit = torch.empty(n, dtype=torch.bool)
@@ -206,32 +203,38 @@ class OccupancyGrid(nn.Module):
         """March rays from ``t_begin`` to ``t_far`` (R,) and emit samples in occupied cells.
 
         Step rule ``dt = clamp(t * cone, dt_min, dt_max)`` (metres), ``0 < dt_min <= dt_max``.
-        CPU: numba kernels. Other devices: :func:`march_reference`.
+        CPU: :func:`march_kernels`. Other devices: :func:`march_reference`.
         """
-        _check_steps(dt_min, dt_max)
-        if origins.device.type != "cpu":
-            return march_reference(origins, directions, t_begin, t_far, self.occupied,
-                                   self.cube_min, self.cell_size, dt_min, dt_max, cone, max_per_ray)
-        o = origins.detach().float().contiguous().numpy()
-        d = directions.detach().float().contiguous().numpy()
-        tb = t_begin.detach().float().contiguous().numpy()
-        tf = t_far.detach().float().contiguous().numpy()
-        occ = self.occupied.numpy()
-        gmin = self.cube_min.double().numpy()
-        n_rays = o.shape[0]
-        counts = np.empty(n_rays, np.int64)
-        t_stop = np.empty(n_rays, np.float32)
-        args = (o, d, tb, tf, occ, gmin, float(self.cell_size), float(dt_min), float(dt_max),
-                float(cone), int(max_per_ray))
-        _mk.march_count(*args, counts, t_stop)
-        starts = np.cumsum(counts) - counts
-        total = int(counts.sum())
-        ray_idx = np.empty(total, np.int64)
-        ts = np.empty(total, np.float32)
-        te = np.empty(total, np.float32)
-        _mk.march_fill(*args, starts, ray_idx, ts, te)
-        return PackedSamples(torch.from_numpy(ray_idx), torch.from_numpy(ts), torch.from_numpy(te),
-                             torch.from_numpy(t_stop))
+        march_fn = march_kernels if use_kernels(origins, dtype=None) else march_reference
+        return march_fn(origins, directions, t_begin, t_far, self.occupied, self.cube_min,
+                        self.cell_size, dt_min, dt_max, cone, max_per_ray)
+
+
+def march_kernels(origins, directions, t_begin, t_far, occupied, cube_min, cell_size, dt_min,
+                  dt_max, cone=0.0, max_per_ray=1 << 30) -> PackedSamples:
+    """The numba marcher (:mod:`nerfbot.kernels.marching`: a counting pass, then a filling
+    one) on CPU tensors; arguments and result as :func:`march_reference`."""
+    _check_steps(dt_min, dt_max)
+    o = origins.detach().float().contiguous().numpy()
+    d = directions.detach().float().contiguous().numpy()
+    tb = t_begin.detach().float().contiguous().numpy()
+    tf = t_far.detach().float().contiguous().numpy()
+    occ = occupied.numpy()
+    gmin = cube_min.double().numpy()
+    n_rays = o.shape[0]
+    counts = np.empty(n_rays, np.int64)
+    t_stop = np.empty(n_rays, np.float32)
+    args = (o, d, tb, tf, occ, gmin, float(cell_size), float(dt_min), float(dt_max),
+            float(cone), int(max_per_ray))
+    _mk.march_count(*args, counts, t_stop)
+    starts = np.cumsum(counts) - counts
+    total = int(counts.sum())
+    ray_idx = np.empty(total, np.int64)
+    ts = np.empty(total, np.float32)
+    te = np.empty(total, np.float32)
+    _mk.march_fill(*args, starts, ray_idx, ts, te)
+    return PackedSamples(torch.from_numpy(ray_idx), torch.from_numpy(ts), torch.from_numpy(te),
+                         torch.from_numpy(t_stop))
 
 
 def march_reference(origins, directions, t_begin, t_far, occupied, cube_min, cell_size, dt_min,

@@ -63,7 +63,8 @@ class TrainConfig:
     expected z-depth against the dataset's depth maps, in units of the scene cube's diagonal,
     on training pixels whose depth is finite and inside the bounds. 0 = RGB only."""
     device: str = "cpu"
-    """torch device; the fast kernels are CPU kernels, other devices use the torch twins."""
+    """torch device; the fast kernels are CPU kernels, other devices use the torch twins
+    (``NERFBOT_KERNELS=torch`` forces the twins on the CPU too: :mod:`nerfbot.kernels`)."""
     progress: bool = True
     """Show a progress bar."""
 

@@ -42,7 +42,7 @@ PLAUSIBLE = st.sampled_from(["1", "2", "4", "0.5", "16"])
 
 
 def _subcommands() -> dict[str, argparse.ArgumentParser]:
-    parser = build_parser()
+    parser = build_parser(eager=True)  # the capture command's arguments too
     action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     return dict(action.choices)
 

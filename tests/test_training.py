@@ -205,7 +205,7 @@ def _growing_method():
     from dataclasses import replace
 
     from nerfbot.fields.ngp import NGPField, NGPFieldConfig
-    from nerfbot.methods import METHODS, _build_ngp
+    from nerfbot.methods import METHODS
 
     class GrowingNGP(NGPField):
         def __init__(self, *a, **k):
@@ -222,8 +222,8 @@ def _growing_method():
             sigma, feat = super().density(x, cond)
             return sigma * self.gain.mean(), feat
 
-    def build(aabb, background, options, seed, conditioning):
-        model = _build_ngp(aabb, background, options, seed, conditioning)
+    def build(aabb, background, configs, seed, conditioning):
+        model = METHODS["ngp"].build(aabb, background, configs, seed, conditioning)
         grown = GrowingNGP(aabb, NGPFieldConfig(log2_hashmap_size=12, n_levels=4), seed=seed)
         model.field = grown
         return model

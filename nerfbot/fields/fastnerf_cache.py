@@ -24,8 +24,9 @@ from nerfbot.cameras import Rays
 from nerfbot.fields.base import BoxNormalizer, Field
 from nerfbot.fields.fastnerf import combine_components
 from nerfbot.kernels import fastnerf_cache as _kc
+from nerfbot.kernels import use_kernels
 from nerfbot.models import Model
-from nerfbot.octahedral import octahedral_encode
+from nerfbot.octahedral import octahedral_lookup
 from nerfbot.rendering import RenderOutput, composite
 from nerfbot.sampling import march_reference, ray_aabb
 
@@ -172,15 +173,7 @@ class CachedField(Field):
 
     def direction_weights(self, d: torch.Tensor) -> torch.Tensor:
         """d: (N, 3) unit directions -> beta (N, D), bilinear on the octahedral grid."""
-        nd = self.dir_weights.shape[0]
-        uv = octahedral_encode(d.double())
-        f = (uv + 1.0) * 0.5 * (nd - 1)
-        i = torch.floor(f).long().clamp(0, nd - 2)
-        w = (f - i).float()
-        wu, wv = w[:, 0:1], w[:, 1:2]
-        g = self.dir_weights
-        return ((1 - wu) * (1 - wv) * g[i[:, 0], i[:, 1]] + wu * (1 - wv) * g[i[:, 0] + 1, i[:, 1]]
-                + (1 - wu) * wv * g[i[:, 0], i[:, 1] + 1] + wu * wv * g[i[:, 0] + 1, i[:, 1] + 1])
+        return octahedral_lookup(self.dir_weights, d)
 
     # -- Field interface -----------------------------------------------------------------------
     def density(self, x: torch.Tensor, cond: Optional[torch.Tensor] = None):
@@ -239,7 +232,7 @@ class FastNeRFCacheModel(Model):
         """Eval mode only: the fused numba renderer on CPU, the torch twin on other devices."""
         if self.training:
             self._no_training()
-        if rays.origins.device.type == "cpu":
+        if use_kernels(rays.origins, dtype=None):
             return self.render_fused(rays)
         return self.render_reference(rays)
 

@@ -25,6 +25,7 @@ from nerfbot.block_render import ScratchArrays, render_blocks
 from nerfbot.encodings import FrequencyEncoding
 from nerfbot.fields.base import BoxNormalizer, Field, trunc_exp
 from nerfbot.kernels import kilonerf as _kk
+from nerfbot.kernels import use_kernels
 from nerfbot.models import OccupancyModel, OccupancyModelConfig
 from nerfbot.rendering import RenderOutput, ray_starts
 from nerfbot.sampling import OccupancyGrid, ray_aabb
@@ -126,12 +127,6 @@ def _uniform(gen: torch.Generator, shape, fan_in: int) -> torch.Tensor:
     return (torch.rand(shape, generator=gen) * 2.0 - 1.0) * bound
 
 
-def _use_kernels(*tensors: torch.Tensor) -> bool:
-    """The numba kernels apply to float32 CPU tensors that need no gradient."""
-    return all(t.device.type == "cpu" and t.dtype == torch.float32 and not t.requires_grad
-               for t in tensors)
-
-
 class KiloNeRFField(Field):
     """Per network k: h = relu(W_l ... relu(W_in gamma(x_local) + b_in)),
     sigma = trunc_exp(w_sigma . h + b_sigma + bias), rgb = sigmoid(W_rgb relu(W_color [h, gamma(d)]
@@ -211,18 +206,18 @@ class KiloNeRFField(Field):
         """(M,) slots, all >= 0 -> their :class:`Layout` (C adapted to the samples per network)."""
         per_net = max(slots.shape[0] / max(self.num_networks, 1), 1.0)
         chunk = int(min(max(2 ** round(math.log2(per_net)), 8), self.config.chunk_rows))
-        if self.config.layout_backend == "torch" or slots.device.type != "cpu":
-            pos, chunk_net = chunk_layout_reference(slots, self.num_networks, chunk)
-        else:
+        if use_kernels(slots, backend=self.config.layout_backend):
             pos, chunk_net = _kk.chunk_layout(slots.contiguous().numpy(), self.num_networks, chunk)
             pos, chunk_net = torch.from_numpy(pos), torch.from_numpy(chunk_net)
+        else:
+            pos, chunk_net = chunk_layout_reference(slots, self.num_networks, chunk)
         return Layout(pos, chunk_net, chunk)
 
     def encoded_rows(self, values: torch.Tensor, layout: Layout, enc: FrequencyEncoding,
                      out: Optional[torch.Tensor] = None, col: int = 0) -> torch.Tensor:
         """The encoding of ``values`` (M, D) on the padded rows of ``layout``: (rows, D_enc);
         with ``out`` (rows, >= col + D_enc), written into its columns from ``col`` instead."""
-        if self.config.layout_backend == "numba" and _use_kernels(values):
+        if use_kernels(values, backend=self.config.layout_backend) and not values.requires_grad:
             if out is None:
                 out, col = torch.zeros(layout.rows, enc.out_dim), 0
             v = values.contiguous()
@@ -328,15 +323,6 @@ class KiloNeRFField(Field):
         for name in PARAMETER_NAMES:
             setattr(self, name, nn.Parameter(getattr(self, name).data[old].clone()))
         return int(keep.numel())
-
-
-#: kilonerf's own defaults of OccupancyModelConfig fields (options still override them). Its
-#: speed comes from skipping empty space, so its occupancy grid is finer (128^3) and stricter
-#: (a cell counts when one marching step through it is >= 15% opaque, or denser than average)
-#: than ngp's, and its steps are twice as long (128 per cube diagonal). Distilled from the
-#: 180 s ngp run of the 128x128 tabletop (32.8 dB) for 500 steps, ngp's settings (256 steps,
-#: 64^3 grid at 0.01) gave 33.2 dB test PSNR with 91k samples per image, these 32.8 dB with 31k.
-KILONERF_OCCUPANCY_DEFAULTS = {"render_steps": 128, "grid_resolution": 128, "grid_threshold": 0.15}
 
 
 @dataclass
@@ -594,8 +580,8 @@ class KiloNeRFModel(OccupancyModel):
 
     # -- rendering ---------------------------------------------------------------------------
     def _render_inference(self, rays, cond=None) -> RenderOutput:
-        cpu = rays.origins.device.type == "cpu" and self.field.config.layout_backend == "numba"
-        if self.kilo_config.fused_render and cpu:
+        if self.kilo_config.fused_render and use_kernels(
+                rays.origins, backend=self.field.config.layout_backend, dtype=None):
             return self.render_fast(rays)
         return super()._render_inference(rays, cond)
 

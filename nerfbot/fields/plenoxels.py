@@ -24,6 +24,7 @@ from torch import nn
 
 from nerfbot.fields.base import Field, trunc_exp
 from nerfbot.kernels import densegrid as dg
+from nerfbot.kernels import use_kernels
 
 log = logging.getLogger(__name__)
 
@@ -120,7 +121,7 @@ class PlenoxelField(Field):
         self.sh_data = nn.Parameter(torch.zeros(n, 3 * self.n_coeffs))
         self._step = 0
         self._coords_cache: Optional[tuple] = None
-        if cfg.backend == "numba":
+        if use_kernels(backend=cfg.backend):
             dg.warm_up()
 
     # -- configuration ---------------------------------------------------------------------------
@@ -204,8 +205,7 @@ class PlenoxelField(Field):
         return (x - self.lo) / self.extent
 
     def _fast(self, x: torch.Tensor) -> bool:
-        return (self.config.backend == "numba" and x.device.type == "cpu"
-                and x.dtype == torch.float32 and not x.requires_grad)
+        return use_kernels(x, backend=self.config.backend) and not x.requires_grad
 
     def _stencil(self, u: torch.Tensor):
         """Box coordinates (N, 3) -> rows, weights (N, 8), coverage (N,) on the current grid."""
@@ -240,8 +240,7 @@ class PlenoxelField(Field):
         return torch.where(self._inside(u), sigma, torch.zeros_like(sigma))
 
     def color(self, feat: torch.Tensor, d: torch.Tensor, cond: Optional[torch.Tensor] = None):
-        if (self.config.backend == "numba" and feat.device.type == "cpu"
-                and feat.dtype == torch.float32 and not d.requires_grad):
+        if use_kernels(feat, backend=self.config.backend) and not d.requires_grad:
             return dg.SHColorFunction.apply(feat, d)
         return dg.sh_color_reference(feat, d)
 
@@ -294,7 +293,7 @@ class PlenoxelField(Field):
         pairs = torch.stack([torch.cat(a_rows), torch.cat(b_rows)])    # (2, P)
         if pairs.shape[1] == 0:
             return None
-        fast = self.config.backend == "numba" and self.sh_data.device.type == "cpu"
+        fast = use_kernels(self.sh_data, backend=self.config.backend, dtype=None)
         tv = dg.TVFunction.apply if fast else dg.tv_reference
         loss = self.density_data.new_zeros(())
         for table, weight in ((self.density_data, cfg.tv_density_weight),

@@ -32,6 +32,7 @@ from torch import nn
 
 from nerfbot.encodings import FrequencyEncoding, spherical_harmonics
 from nerfbot.fields.base import Field, mlp
+from nerfbot.kernels import use_kernels
 from nerfbot.kernels import vm as _vk
 from nerfbot.kernels.vm import VM_AXES
 
@@ -145,8 +146,7 @@ class VMGrid(nn.Module):
         """x: (N, 3) in [0, 1]^3 -> (N, 3, C) per-pair products plane * line. ``in_box``: the
         caller guarantees x is finite and within [0, 1]^3 (skips the clamp)."""
         grids = [*self.planes, *self.lines]
-        fast = (self.backend == "numba" and x.device.type == "cpu" and x.dtype == torch.float32
-                and not x.requires_grad and all(g.dtype == torch.float32 for g in grids))
+        fast = use_kernels(x, *grids, backend=self.backend) and not x.requires_grad
         if fast:
             return _VMNumba.apply(x, in_box, *grids)
         return vm_reference(x, self.planes, self.lines)
@@ -271,7 +271,7 @@ class TensoRFField(Field):
         else:
             self.basis = nn.Linear(3 * cfg.app_components, 3 * (cfg.sh_degree + 1) ** 2)
         global _WARM
-        if cfg.backend == "numba" and not _WARM:
+        if use_kernels(backend=cfg.backend) and not _WARM:
             _vk.warm_up()  # compile / load the kernels outside any training clock
             _WARM = True
 
