@@ -94,14 +94,28 @@ def _parse_background(text: str | None):
     return parts
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return value
+def _number(convert, accept, expected: str):
+    """An argparse type: ``convert(text)`` (int or float) when ``accept`` takes it, else an
+    error saying what was ``expected``."""
+    def parse(text: str):
+        try:
+            value = convert(text)
+        except ValueError:
+            value = None
+        if value is None or not accept(value):
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
+        return value
+    return parse
+
+
+_positive_int = _number(int, lambda v: v >= 1, "a positive integer")
+#: An integer >= 0: a count, or a random seed (numpy's generators take no negative seeds).
+_non_negative_int = _number(int, lambda v: v >= 0, "an integer >= 0")
+_positive_float = _number(float, lambda v: 0.0 < v < math.inf, "a positive finite number")
+#: A number >= 0, ``inf`` allowed (a cadence that never comes).
+_non_negative_float = _number(float, lambda v: v >= 0.0, "a number >= 0")
+#: A time in [0, 1] (the span of a dynamic capture).
+_unit_time = _number(float, lambda v: 0.0 <= v <= 1.0, "a time in [0, 1]")
 
 
 #: The longest image side a command renders (pixels); larger requests are refused up front
@@ -114,50 +128,6 @@ def _image_side(text: str) -> int:
     if value > MAX_IMAGE_SIDE:
         raise argparse.ArgumentTypeError(f"an image side of at most {MAX_IMAGE_SIDE} pixels, "
                                          f"got {text!r}")
-    return value
-
-
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not 0.0 < value < math.inf:
-        raise argparse.ArgumentTypeError(f"expected a positive finite number, got {text!r}")
-    return value
-
-
-def _non_negative_float(text: str) -> float:
-    """A number >= 0 (``inf`` allowed)."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not value >= 0.0:
-        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
-    return value
-
-
-def _unit_time(text: str) -> float:
-    """A time in [0, 1] (the span of a dynamic capture)."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not 0.0 <= value <= 1.0:
-        raise argparse.ArgumentTypeError(f"expected a time in [0, 1], got {text!r}")
-    return value
-
-
-def _non_negative_int(text: str) -> int:
-    """An integer >= 0 (a count, or a random seed: numpy's generators take no negative
-    seeds)."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
     return value
 
 
