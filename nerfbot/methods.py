@@ -7,7 +7,7 @@ values are the method's effective defaults (:func:`method_defaults`); ``--option
 replaces a value by its field name. An option name may belong to one config of a method only
 (:func:`register_method` refuses a second). Everything else asks the registry.
 
-Adding a variant: a field in ``nerfbot/fields/`` (and a model in :mod:`nerfbot.models` if no
+Adding a variant: a field in ``nerfbot/fields/`` (and a model in :mod:`nerfbot.models.base` if no
 existing renderer fits) and one :func:`register_method` entry; for the command line, also its
 line in :mod:`nerfbot.method_names`, which lists the methods without importing any of this.
 """
@@ -20,25 +20,28 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from nerfbot.background import make_background
-from nerfbot.conditioning import Conditioning
+from nerfbot.bake.fastnerf_cache import bake_cache
+from nerfbot.bake.plenoctree import OctreeBakeConfig, bake_octree
+from nerfbot.data.conditioning import Conditioning
 from nerfbot.fields.articulated import ArticulatedField, ArticulatedFieldConfig
+from nerfbot.fields.background import make_background
 from nerfbot.fields.dnerf import DNeRFField, DNeRFFieldConfig
-from nerfbot.fields.fastnerf import FastNeRFField, FastNeRFFieldConfig, bake_cache
-from nerfbot.fields.fastnerf_cache import FastNeRFCacheConfig, FastNeRFCacheModel
-from nerfbot.fields.kilonerf import (KiloNeRFConfig, KiloNeRFField, KiloNeRFFieldConfig,
-                                      KiloNeRFModel)
-from nerfbot.fields.mipnerf import (MipNeRFField, MipNeRFFieldConfig, MipNeRFModel,
-                                    MipNeRFModelConfig)
+from nerfbot.fields.fastnerf import FastNeRFField, FastNeRFFieldConfig
+from nerfbot.fields.kilonerf import KiloNeRFField, KiloNeRFFieldConfig
+from nerfbot.fields.mipnerf import MipNeRFField, MipNeRFFieldConfig
 from nerfbot.fields.nerf import NeRFField, NeRFFieldConfig
 from nerfbot.fields.nerfsh import NeRFSHField, NeRFSHFieldConfig
 from nerfbot.fields.ngp import NGPField, NGPFieldConfig
 from nerfbot.fields.plenoxels import PlenoxelField, PlenoxelFieldConfig
 from nerfbot.fields.tensorf import TensoRFField, TensoRFFieldConfig
 from nerfbot.fields.tnerf import TNeRFField, TNeRFFieldConfig
-from nerfbot.models import (HierarchicalModel, HierarchicalModelConfig, Model, OccupancyModel,
-                            OccupancyModelConfig)
-from nerfbot.plenoctree import OctreeBakeConfig, PlenOctreeConfig, PlenOctreeModel, bake_octree
+from nerfbot.models.base import Model
+from nerfbot.models.fastnerf_cache import FastNeRFCacheConfig, FastNeRFCacheModel
+from nerfbot.models.hierarchical import HierarchicalModel, HierarchicalModelConfig
+from nerfbot.models.kilonerf import KiloNeRFConfig, KiloNeRFModel
+from nerfbot.models.mipnerf import MipNeRFModel, MipNeRFModelConfig
+from nerfbot.models.occupancy import OccupancyModel, OccupancyModelConfig
+from nerfbot.models.plenoctree import PlenOctreeConfig, PlenOctreeModel
 
 
 @dataclass(frozen=True)

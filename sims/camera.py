@@ -13,8 +13,8 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from nerfbot.cameras import check_pose, focal_from_fov
 from nerfbot.data.intrinsics import Intrinsics
+from nerfbot.ops.cameras import check_pose, focal_from_fov
 from sims.gl import make_renderer
 from sims.scene import CAPTURE_CAMERA
 

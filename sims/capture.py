@@ -10,7 +10,8 @@ empty, or a dataset nerfbot captured there before, replaced only with ``overwrit
 state, ``time`` and ``joints``) this way; :func:`capture` (static scenes), :mod:`sims.dynamic`
 (over time) and :mod:`sims.articulated` (over joint configurations) build their views and call it.
 
-Run as ``python -m sims.capture --scene tabletop --views 60 --test-views 10 --out DIR``.
+Run as ``nerfbot capture --scene tabletop --views 60 --test-views 10 --out DIR`` (or
+``python -m sims.cli`` with the same options).
 """
 
 from __future__ import annotations
@@ -33,8 +34,8 @@ from nerfbot.data.writers import FORMATS, open_writer
 from sims.camera import CaptureCamera, nearest_rigid
 from sims.manifest import scene_manifest
 from sims.rigs import RigConfig, parse_size, rig_poses
-from sims.sensor import DepthSensorModel
 from sims.scene import builtin_scenes, load_capture_model, parse_generated, resolve_scene
+from sims.sensor import DepthSensorModel
 
 log = logging.getLogger(__name__)
 
@@ -268,23 +269,3 @@ def capture(scene: str | Path, rig: RigConfig, test_rig: Optional[RigConfig], ou
     log.info("wrote %d views (%d train, %d test) of '%s' to %s", len(views), len(views) - n_test,
              n_test, meta["name"], out_dir)
     return out_dir
-
-
-def main(argv: Optional[Sequence[str]] = None) -> Path:
-    """``python -m sims.capture``: the same options as ``nerfbot capture``."""
-    import argparse
-
-    from sims.cli import add_capture_arguments, run_capture
-
-    parser = argparse.ArgumentParser(prog="python -m sims.capture", description=__doc__.split("\n")[0])
-    add_capture_arguments(parser)
-    args = parser.parse_args(argv)
-    try:
-        return run_capture(args)
-    except (FileNotFoundError, FileExistsError, ValueError, RuntimeError) as err:
-        parser.exit(2, f"{parser.prog}: error: {err}\n")
-
-
-if __name__ == "__main__":
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    main()

@@ -1,4 +1,4 @@
-"""Command-line wiring of a capture: ``nerfbot capture ...`` and ``python -m sims.capture ...``.
+"""Command-line wiring of a capture: ``nerfbot capture ...`` and ``python -m sims.cli ...``.
 
 The ``nerfbot`` CLI calls :func:`add_capture_arguments` on its ``capture`` sub-parser and
 :func:`run_capture` on the parsed arguments.
@@ -13,8 +13,11 @@ each (:mod:`sims.articulated`). Options of one kind given to another are errors.
 from __future__ import annotations
 
 import argparse
+import json
+import logging
 import math
 from pathlib import Path
+from typing import Optional, Sequence
 
 import mujoco
 
@@ -22,8 +25,8 @@ from nerfbot.data.writers import FORMATS
 from sims import articulated as art
 from sims import dynamic as dyn
 from sims.capture import capture
-from sims.manifest import content_bounds, rendered_geoms
-from sims.rigs import RIG_KINDS, RigConfig, make_test_rig, parse_size, scene_rig_defaults
+from sims.manifest import rendered_geoms
+from sims.rigs import RIG_KINDS, RigConfig, default_rig, make_test_rig, parse_size
 from sims.scene import load_model
 from sims.sensor import DepthSensorModel
 from sims.sequence import CAMERA_PATHS, SEQUENCE_RIGS, scene_capture_kind, sequence_rig
@@ -160,20 +163,6 @@ def add_capture_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentP
     return parser
 
 
-def default_rig(scene: str | Path, **overrides) -> RigConfig:
-    """A rig framed for ``scene``: its declared or bounds-derived target/radius/fov + overrides.
-
-    ``overrides`` are :class:`RigConfig` fields; ``None`` values are ignored.
-    """
-    model = load_model(scene)
-    data = mujoco.MjData(model)
-    mujoco.mj_forward(model, data)
-    ids = sorted({int(g.objid) for g in rendered_geoms(model, data)})
-    defaults = scene_rig_defaults(model, content_bounds(model, data, ids) if ids else None)
-    defaults.update({k: v for k, v in overrides.items() if v is not None})
-    return RigConfig(**defaults)
-
-
 def rigs_from_args(args: argparse.Namespace) -> tuple[RigConfig, RigConfig | None]:
     """(train rig, test rig or None) from parsed capture arguments; ValueError if inconsistent."""
     kind = args.rig or "hemisphere"
@@ -302,8 +291,6 @@ def _run_sequence_capture(args: argparse.Namespace, kind: str, rig_kind: str) ->
 
 
 def _count_frames(out: Path, fmt: str) -> tuple[int, int]:
-    import json
-
     if fmt == "nerfstudio":
         doc = json.loads((out / "transforms.json").read_text())
         return len(doc.get("train_filenames", [])), len(doc.get("test_filenames", []))
@@ -312,3 +299,20 @@ def _count_frames(out: Path, fmt: str) -> tuple[int, int]:
         path = out / f"transforms_{split}.json"
         counts.append(len(json.loads(path.read_text())["frames"]) if path.exists() else 0)
     return counts[0], counts[1]
+
+
+def main(argv: Optional[Sequence[str]] = None) -> Path:
+    """``python -m sims.cli``: the same options as ``nerfbot capture``."""
+    parser = argparse.ArgumentParser(prog="python -m sims.cli",
+                                     description="Capture a dataset of a MuJoCo scene.")
+    add_capture_arguments(parser)
+    args = parser.parse_args(argv)
+    try:
+        return run_capture(args)
+    except (FileNotFoundError, FileExistsError, ValueError, RuntimeError) as err:
+        parser.exit(2, f"{parser.prog}: error: {err}\n")
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    main()

@@ -16,6 +16,9 @@ import mujoco
 import numpy as np
 import trimesh
 
+from sims.manifest import is_infinite_plane, rendered_geoms
+from sims.scene import load_model
+
 log = logging.getLogger(__name__)
 
 #: Icosphere subdivisions of spheres and ellipsoids (4: 5120 faces, area within 0.2 %).
@@ -87,7 +90,7 @@ def scene_meshes(model: mujoco.MjModel, data: mujoco.MjData,
     Geoms without a finite surface (infinite planes, height fields, SDFs) are skipped with a
     warning. The meshes are concatenated, not merged: touching geoms keep their hidden faces
     (the bottom of an object resting on the table); see
-    :func:`nerfbot.meshing.visible_mask` to keep only what cameras see.
+    :func:`nerfbot.query.meshing.visible_mask` to keep only what cameras see.
 
     Raises:
         ValueError: an unknown geom name or id, or no geom with a finite surface.
@@ -112,9 +115,6 @@ def capture_geometry(manifest: Optional[dict]) -> Optional[tuple[trimesh.Trimesh
     manifest names, in the state the capture rendered (``qpos0``); None when that cannot be
     known: no manifest, a source that is neither ``builtin:NAME`` nor an existing MJCF file, or
     a scene that moves across frames (joints or time)."""
-    from sims.manifest import is_infinite_plane, rendered_geoms
-    from sims.scene import load_model
-
     if not manifest or manifest.get("time_varying") or manifest.get("moving_joints"):
         return None
     source = str(manifest.get("source") or "")

@@ -21,6 +21,7 @@ from typing import Iterable
 import mujoco
 import numpy as np
 
+from sims.manifest import content_bounds, rendered_geoms
 from sims.rollout import joint_name
 
 JOINT_TYPES = {int(mujoco.mjtJoint.mjJNT_FREE): "free", int(mujoco.mjtJoint.mjJNT_BALL): "ball",
@@ -143,8 +144,6 @@ def rigid_parts(model: mujoco.MjModel, names: Iterable[str]) -> list[dict]:
     its rendered geoms at the rest configuration ``qpos0`` (metres). Bodies no joint moves (the
     static part) are not listed. Parts without rendered geoms are dropped.
     """
-    from sims.manifest import content_bounds, rendered_geoms
-
     names = [str(n) for n in names]
     moved = {n: set(joint_bodies(model, [n])[n]) for n in names}
     # outer joints move more bodies than the joints nested inside them

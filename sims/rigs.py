@@ -25,9 +25,12 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Optional, Sequence
 
+import mujoco
 import numpy as np
 
-from nerfbot.cameras import check_pose, look_at, spherical_eye
+from nerfbot.ops.cameras import check_pose, look_at, spherical_eye
+from sims.manifest import content_bounds, rendered_geoms
+from sims.scene import load_model
 
 RIG_KINDS = ("hemisphere", "orbit", "explicit")
 
@@ -258,8 +261,6 @@ def scene_rig_defaults(model, bounds: Optional[np.ndarray] = None) -> dict:
     ``nerfbot_rig_fovy`` where present. Otherwise: target = centre of ``bounds`` (2, 3), fov
     30 degrees, radius so the bounding sphere fits the vertical fov with 10 % margin.
     """
-    import mujoco
-
     found = {}
     for key, name in (("target", "nerfbot_rig_target"), ("radius", "nerfbot_rig_radius"),
                       ("fov_deg", "nerfbot_rig_fovy")):
@@ -278,3 +279,17 @@ def scene_rig_defaults(model, bounds: Optional[np.ndarray] = None) -> dict:
     found.setdefault("radius", TABLETOP_RADIUS)
     found["fov_deg"] = fov
     return found
+
+
+def default_rig(scene: str | Path, **overrides) -> RigConfig:
+    """A rig framed for ``scene``: its declared or bounds-derived target/radius/fov + overrides.
+
+    ``overrides`` are :class:`RigConfig` fields; ``None`` values are ignored.
+    """
+    model = load_model(scene)
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    ids = sorted({int(g.objid) for g in rendered_geoms(model, data)})
+    defaults = scene_rig_defaults(model, content_bounds(model, data, ids) if ids else None)
+    defaults.update({k: v for k, v in overrides.items() if v is not None})
+    return RigConfig(**defaults)

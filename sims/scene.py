@@ -10,13 +10,14 @@ from typing import Callable
 
 import mujoco  # sims/__init__ has selected the GL backend before this import
 
+from nerfbot.data.writers import write_text_atomic
+from sims.glassware import glassware_xml, glazed_xml
+
 #: Name of the camera :func:`load_capture_model` adds to the world body.
 CAPTURE_CAMERA = "nerfbot_capture"
 
 
 def _generators() -> dict[str, Callable[[int], str]]:
-    from sims.glassware import glassware_xml, glazed_xml
-
     return {"glassware": glassware_xml, "glazed": glazed_xml}
 
 
@@ -53,7 +54,6 @@ def generated_scene(family: str, seed: int) -> Path:
     path = scene_cache_dir() / f"{family}-{seed}.xml"
     if path.is_file() and path.read_text() == text:
         return path
-    from nerfbot.data.writers import write_text_atomic
 
     return write_text_atomic(path, text)
 

@@ -15,7 +15,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from nerfbot.pointcloud import depth_discontinuities
+from nerfbot.ops.pointcloud import depth_discontinuities
 
 TRANSPARENT_MODES = ("behind", "invalid")
 

@@ -34,10 +34,11 @@ from typing import Optional, Sequence
 import mujoco
 import numpy as np
 
-from nerfbot.cameras import look_at, spherical_eye
+from nerfbot.ops.cameras import look_at, spherical_eye
+from sims.joints import body_name
 from sims.manifest import content_bounds, rendered_geoms
 from sims.rigs import parse_size, scene_rig_defaults
-from sims.scene import load_model
+from sims.scene import load_capture_model, load_model, resolve_scene
 
 CAPTURE_KINDS = ("static", "dynamic", "articulated")
 #: Rigs of captures over time / configurations: one camera per step, or several.
@@ -77,8 +78,6 @@ def capture_kind(model: mujoco.MjModel) -> str:
 def load_sequence_scene(scene: str | Path, kind: str):
     """(model, data, scene name) of a ``kind`` ("dynamic" or "articulated") scene, compiled with
     the capture camera; ValueError if the scene declares another kind."""
-    from sims.scene import load_capture_model, resolve_scene
-
     model, data = load_capture_model(scene)
     actual = capture_kind(model)
     if actual != kind:
@@ -262,8 +261,6 @@ def union_bounds(model: mujoco.MjModel, data: mujoco.MjData, qpos_list) -> np.nd
 def state_arrays(model: mujoco.MjModel, data: mujoco.MjData, qpos_list) -> dict[str, np.ndarray]:
     """World poses of every body in each state: ``body_names`` (nbody,), ``body_pos``
     (S, nbody, 3) metres, ``body_quat`` (S, nbody, 4) w-x-y-z, and ``qpos`` (S, nq)."""
-    from sims.joints import body_name
-
     qpos = np.asarray(qpos_list, dtype=np.float64)
     pos = np.empty((len(qpos), model.nbody, 3))
     quat = np.empty((len(qpos), model.nbody, 4))

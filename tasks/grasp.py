@@ -14,9 +14,9 @@ A trial is one randomised scene (scene seed = ``--seed`` + trial index). For eac
    - ``nerf``: the field's expected depth;
    - ``dexnerf``: the field's threshold depth (Dex-NeRF) at density ``--threshold``; by default
      the threshold is calibrated on a held-out scene (the best threshold on its transparent
-     pixels, :func:`nerfbot.depth_eval.depth_mode_sweep`), never on the trial scenes;
+     pixels, :func:`nerfbot.eval.depth_eval.depth_mode_sweep`), never on the trial scenes;
 
-3. the depth maps become one world-frame point cloud with normals (:mod:`nerfbot.pointcloud`),
+3. the depth maps become one world-frame point cloud with normals (:mod:`nerfbot.ops.pointcloud`),
    the antipodal planner (:mod:`tasks.planner`) picks the best grasp near the object, and the
    gripper executes it in physics from the scene's resting state (:mod:`tasks.execute`).
    Success: the object is lifted by at least 10 cm and held for 2 s.
@@ -33,80 +33,43 @@ import json
 import logging
 import math
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable, Optional, Sequence
 
-import sims  # noqa: F401  (selects the GL backend before mujoco is imported)
-
+import cv2
 import mujoco
 import numpy as np
 from tqdm import tqdm
 
-from nerfbot.cameras import Cameras, look_at
-from nerfbot.cli import parse_option
+import sims  # noqa: F401  (selects the GL backend before mujoco is imported)
+from nerfbot.app.cli import parse_option
+from nerfbot.data import load_dataset
 from nerfbot.data.writers import write_json_atomic
-from nerfbot.pointcloud import cloud_arrays, depth_to_cloud, fuse_clouds
+from nerfbot.eval.depth_eval import (DEFAULT_THRESHOLDS, depth_mode_sweep, plot_threshold_sweep,
+                                     pool_sweeps, sweep_from_dict)
+from nerfbot.ops.cameras import Cameras, look_at
+from nerfbot.ops.pointcloud import cloud_arrays, depth_to_cloud, fuse_clouds
+from nerfbot.query.export import colorize_depth, save_image
+from nerfbot.query.render import depth
+from nerfbot.train.checkpoints import CHECKPOINT
+from nerfbot.train.runs import load_model
+from nerfbot.train.trainer import TrainConfig, Trainer
 from sims.camera import CaptureCamera
-from sims.manifest import rendered_geoms
+from sims.capture import capture
+from sims.gripper import add_gripper
+from sims.manifest import declared_objects, geom_name, rendered_geoms
+from sims.rigs import default_rig, make_test_rig
 from sims.scene import CAPTURE_CAMERA, resolve_scene
 from sims.sensor import DepthSensorModel
 from tasks.execute import ExecutionResult, execute_grasp, settle
-from tasks.grasp_report import format_depth_report, format_table, plot_success, summarize
+from tasks.grasp_config import CALIBRATION_SEED, Attempt, GraspTaskConfig
 from tasks.grasp_pose import Grasp
+from tasks.grasp_report import format_depth_report, format_table, plot_success, summarize
+from tasks.planner import plan_grasps
+
 
 log = logging.getLogger(__name__)
-
-#: Scene seed of the held-out scene on which the Dex-NeRF threshold is calibrated.
-CALIBRATION_SEED = 1000
-
-
-@dataclass
-class GraspTaskConfig:
-    """Settings of a grasping experiment (lengths in metres, angles in degrees)."""
-
-    scene: str = "glassware"
-    depth: str = "dexnerf"
-    trials: int = 10
-    seed: int = 0
-    objects: str = "all"
-    """"glass" (transparent objects), "opaque" (the look-alikes), "all", or comma-separated names."""
-    threshold: Optional[float] = None
-    """Dex-NeRF density threshold (1/m); None = calibrate on scene seed CALIBRATION_SEED."""
-    capture_views: int = 100
-    capture_test_views: int = 10
-    capture_size: int = 160
-    train_steps: Optional[int] = 1000
-    """Training budget in steps (deterministic, unaffected by machine load); None = seconds."""
-    train_seconds: float = 300.0
-    """Training budget in seconds when ``train_steps`` is None."""
-    method: str = "ngp"
-    train_options: dict = field(default_factory=lambda: {"distortion_weight": 0.01,
-                                                         "supersample": 1,
-                                                         "density_noise": 0.0,
-                                                         "samples_per_batch": 1 << 17})
-    """Method options of the training runs. The distortion loss (weight 0.01) halves the
-    floaters a threshold catches at low densities (BENCHMARKS.md, glassware calibration).
-    One ray per pixel: the grasp figures and the threshold calibration were measured so; ngp's
-    2 x 2 rays per pixel (its default since) cost 0.7 dB on the glazed look-alike scene.
-    No density noise (ngp's default since session 12): glass is a real veil that the
-    threshold finds, and the calibration was measured without it. 2^17 samples per step
-    (ngp's default until session 13, now 2^15): the step budget was set with it."""
-    query_views: int = 8
-    query_size: int = 128
-    query_fov: float = 40.0
-    query_radius: float = 0.5
-    query_elevation: float = 40.0
-    crop_radius: float = 0.2
-    """Points farther than this (horizontally) from the object are dropped before planning."""
-    edge_jump: float = 0.02
-    """Depth pixels at discontinuities above this fraction of the depth are dropped, for every
-    source alike (flying pixels; a field's expected depth blends silhouettes)."""
-    sensor_mode: str = "behind"
-    cache: Path = field(default_factory=lambda: Path.home() / ".cache" / "nerfbot" / "grasp")
-    out: Path = Path("grasp_out")
-    device: str = "cpu"
-    progress: bool = True
 
 
 # ------------------------------------------------------------------------------ scene + field
@@ -122,10 +85,6 @@ def scene_folder(cfg: GraspTaskConfig, scene_seed: int) -> Path:
 
 def ensure_capture(cfg: GraspTaskConfig, scene_seed: int) -> Path:
     """The scene's capture (RGB + depth + segmentation + sensor depth), captured if missing."""
-    from sims.capture import capture
-    from sims.cli import default_rig
-    from sims.rigs import make_test_rig
-
     out = scene_folder(cfg, scene_seed) / "data"
     if (out / "transforms.json").exists():
         return out
@@ -148,9 +107,6 @@ def run_name(cfg: GraspTaskConfig) -> str:
 def ensure_trained(cfg: GraspTaskConfig, scene_seed: int) -> Path:
     """A run of ``cfg.method`` trained ``cfg.train_steps`` steps (or ``cfg.train_seconds``) on the
     scene's capture; trained (or resumed after an interruption) if it is missing or incomplete."""
-    from nerfbot.data import load_dataset
-    from nerfbot.training import CHECKPOINT, TrainConfig, Trainer
-
     data = ensure_capture(cfg, scene_seed)
     run = scene_folder(cfg, scene_seed) / run_name(cfg)
     done = run / "done.json"
@@ -171,10 +127,6 @@ def ensure_trained(cfg: GraspTaskConfig, scene_seed: int) -> Path:
 def calibrate_threshold(cfg: GraspTaskConfig) -> dict:
     """Best Dex-NeRF threshold on the transparent pixels of the held-out calibration scene
     (cached in ``calibration.json`` beside its run); returns the sweep summary."""
-    from nerfbot.data import load_dataset
-    from nerfbot.depth_eval import depth_mode_sweep, plot_threshold_sweep
-    from nerfbot.training import load_model
-
     run = ensure_trained(cfg, CALIBRATION_SEED)
     path = run / "calibration.json"
     if path.exists():
@@ -197,11 +149,6 @@ def depth_report(cfg: GraspTaskConfig) -> dict:
     expected / median / threshold depth (every threshold of the default sweep plus the
     calibrated one) and the capture's simulated sensor, on transparent-object, opaque-object and
     scene pixels. Writes ``depth_report.json`` and ``depth_sweep.png`` into ``cfg.out``."""
-    from nerfbot.data import load_dataset
-    from nerfbot.depth_eval import (DEFAULT_THRESHOLDS, depth_mode_sweep, plot_threshold_sweep,
-                                    pool_sweeps, sweep_from_dict)
-    from nerfbot.training import load_model
-
     threshold = cfg.threshold if cfg.threshold is not None else calibrate_threshold(cfg)["threshold"]
     thresholds = sorted(set(DEFAULT_THRESHOLDS) | {float(threshold)})
     sweeps = []
@@ -238,8 +185,6 @@ class World:
     """The scene with a capture camera and the gripper, compiled once; its resting state."""
 
     def __init__(self, scene: str, query_size: int, query_fov: float):
-        from sims.gripper import add_gripper
-
         path = resolve_scene(scene)
         spec = mujoco.MjSpec.from_file(str(path))
         spec.worldbody.add_camera(name=CAPTURE_CAMERA, pos=[0, 0, 0], quat=[1, 0, 0, 0])
@@ -315,15 +260,11 @@ def _field_cameras(ctx: DepthContext, poses: Sequence[np.ndarray]) -> Cameras:
 
 
 def _nerf_depth(ctx: DepthContext, poses: Sequence[np.ndarray]) -> list[np.ndarray]:
-    from nerfbot.query import depth
-
     cams = _field_cameras(ctx, poses)
     return [depth(ctx.model, cams, i, mode="expected") for i in range(len(poses))]
 
 
 def _dexnerf_depth(ctx: DepthContext, poses: Sequence[np.ndarray]) -> list[np.ndarray]:
-    from nerfbot.query import depth
-
     cams = _field_cameras(ctx, poses)
     return [depth(ctx.model, cams, i, mode="threshold", threshold=ctx.threshold)
             for i in range(len(poses))]
@@ -336,24 +277,6 @@ DEPTH_SOURCES: dict[str, tuple[bool, Callable]] = {
     "nerf": (True, _nerf_depth),
     "dexnerf": (True, _dexnerf_depth),
 }
-
-
-# ------------------------------------------------------------------------------ one attempt
-@dataclass
-class Attempt:
-    """One grasp attempt on one object of one trial scene."""
-
-    trial: int
-    scene_seed: int
-    object: str
-    transparent: bool
-    depth_source: str
-    success: bool
-    reason: str
-    points: int
-    grasp: Optional[dict] = None
-    lift_height: Optional[float] = None
-    seconds: float = 0.0
 
 
 def cloud_from_depths(depths: Sequence[np.ndarray], poses: Sequence[np.ndarray],
@@ -372,8 +295,6 @@ def cloud_from_depths(depths: Sequence[np.ndarray], poses: Sequence[np.ndarray],
 def attempt_object(world: World, ctx: DepthContext, source: str, name: str, trial: int,
                    scene_seed: int, cfg: GraspTaskConfig, image_path: Optional[Path]) -> Attempt:
     """Query depth around object ``name``, plan, execute from rest, report."""
-    from tasks.planner import plan_grasps
-
     t0 = time.perf_counter()
     world.reset()
     base = world.object_position(name)
@@ -403,10 +324,6 @@ def _attempt_sheet(world: World, pose: np.ndarray, depth_map: np.ndarray, path: 
                    attempt: Attempt) -> None:
     """PNG: the scene at rest from the first query view | the source's depth there | the scene
     now (after the hold), gripper visible."""
-    import cv2
-
-    from nerfbot.export import colorize_depth, save_image
-
     cam = world.camera
     after = cam.option.geomgroup[3]
     cam.option.geomgroup[3] = 1
@@ -448,8 +365,6 @@ def run_experiment(cfg: GraspTaskConfig, sources: Sequence[str]) -> dict:
     """Run ``cfg.trials`` trials for every depth source in ``sources``; write logs and images.
 
     Returns {source: summary dict} (see :func:`summarize`)."""
-    from sims.manifest import declared_objects, geom_name
-
     for s in sources:
         if s not in DEPTH_SOURCES:
             raise ValueError(f"unknown depth source {s!r} (choose from {list(DEPTH_SOURCES)})")
@@ -467,8 +382,6 @@ def run_experiment(cfg: GraspTaskConfig, sources: Sequence[str]) -> dict:
         scene_seed = cfg.seed + trial
         model = None
         if needs_field:
-            from nerfbot.training import load_model
-
             model, _ = load_model(ensure_trained(cfg, scene_seed), cfg.device)
         world = World(scene_name(cfg, scene_seed), cfg.query_size, cfg.query_fov)
         try:

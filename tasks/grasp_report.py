@@ -3,19 +3,19 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Optional
+from typing import Optional
 
 import numpy as np
+from matplotlib.figure import Figure
 
-if TYPE_CHECKING:
-    from tasks.grasp import Attempt, GraspTaskConfig
+from tasks.grasp_config import Attempt, GraspTaskConfig
 
 
-def _rate(items: "list[Attempt]") -> Optional[float]:
+def _rate(items: list[Attempt]) -> Optional[float]:
     return sum(a.success for a in items) / len(items) if items else None
 
 
-def summarize(attempts: "list[Attempt]", source: str, cfg: "GraspTaskConfig",
+def summarize(attempts: list[Attempt], source: str, cfg: GraspTaskConfig,
               threshold: Optional[float]) -> dict:
     """Success rates overall, by transparency and by object, for one depth source."""
     names = sorted({a.object for a in attempts}, key=lambda n: (not n.startswith("glass"), n))
@@ -41,8 +41,6 @@ def summarize(attempts: "list[Attempt]", source: str, cfg: "GraspTaskConfig",
 
 def plot_success(summaries: dict, path: Path, title: str = "") -> Path:
     """PNG bar chart: success rate per object (rows grouped glass / opaque) for each source."""
-    from matplotlib.figure import Figure  # no pyplot: leaves the caller's backend alone
-
     sources = list(summaries)
     names = []
     for s in sources:

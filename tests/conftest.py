@@ -45,8 +45,7 @@ def pytest_collection_modifyitems(config, items):
 def tiny_capture(tmp_path_factory):
     """(dataset folder, train rig) of a 32x32 tabletop capture: 16 train + 4 test views."""
     from sims.capture import capture
-    from sims.cli import default_rig
-    from sims.rigs import make_test_rig
+    from sims.rigs import default_rig, make_test_rig
 
     out = tmp_path_factory.mktemp("tiny") / "tabletop"
     rig = default_rig("tabletop", count=TINY_VIEWS, width=TINY_SIZE, height=TINY_SIZE, seed=0)

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from nerfbot.conditioning import Conditioning, dataset_conditioning, frame_conditions
 from nerfbot.data import load_dataset
-from nerfbot.kinematics import JointChain
+from nerfbot.data.conditioning import Conditioning, dataset_conditioning, frame_conditions
+from nerfbot.ops.kinematics import JointChain
 from sims.joints import joint_info, rigid_parts
 
 pytestmark = pytest.mark.slow(85)  # rough single-core seconds (tests/conftest.py)
@@ -124,7 +124,7 @@ def toy(tmp_path_factory):
 
 
 def test_part_kinematics_match_mujoco_body_poses_of_the_capture(toy):
-    from nerfbot.auto import choose_from_manifest
+    from nerfbot.train.auto import choose_from_manifest
 
     ds = load_dataset(toy)
     cond = dataset_conditioning(ds)
@@ -158,8 +158,8 @@ TINY = {"samples_per_batch": 8192, "grid_update_every": 8, "grid_resolution": 32
 
 
 def _train(data, method, steps, out):
-    from nerfbot.evaluation import evaluate
-    from nerfbot.training import TrainConfig, Trainer
+    from nerfbot.eval.evaluation import evaluate
+    from nerfbot.train.trainer import TrainConfig, Trainer
 
     ds = load_dataset(data)
     trainer = Trainer(ds, out, TrainConfig(method=method, max_steps=steps, seed=0, progress=False,
@@ -188,7 +188,7 @@ def test_two_part_toy_renders_unseen_configurations(toy_runs):
 
 
 def test_joint_estimation_recovers_the_hinge_angle(toy_runs):
-    from nerfbot.joint_estimation import JointEstimateConfig, estimate_joints
+    from nerfbot.query.joint_estimation import JointEstimateConfig, estimate_joints
 
     model, ds, _, _ = toy_runs["articulated"]
     cond = dataset_conditioning(ds)
@@ -207,7 +207,7 @@ def test_cli_estimate_joints_and_joint_sweep(toy_runs, tmp_path, capsys):
 
     import cv2
 
-    from nerfbot.cli import main
+    from nerfbot.app.cli import main
 
     run = toy_runs["articulated"][3]
     assert main(["estimate-joints", str(run), "--every", "3", "--max-images", "2", "--steps", "5",
@@ -222,7 +222,7 @@ def test_cli_estimate_joints_and_joint_sweep(toy_runs, tmp_path, capsys):
 
 
 def test_conditioning_round_trip_and_sweeps():
-    from nerfbot.query import sweep_conditions
+    from nerfbot.query.render import sweep_conditions
 
     c = Conditioning("joints", ("a", "b"), ((0.0, 2.0), (-1.0, 1.0)))
     assert Conditioning.from_dict(c.to_dict()) == c

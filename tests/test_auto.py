@@ -6,9 +6,10 @@ import json
 
 import pytest
 
-from nerfbot.auto import (TRANSPARENT_DEPTH_THRESHOLD, TRANSPARENT_GRID_THRESHOLD,
-                          auto_train_config, bench_rows, choose_budget, choose_from_manifest)
+from nerfbot.bench.auto_sweep import auto_train_config
 from nerfbot.data import load_dataset
+from nerfbot.train.auto import (TRANSPARENT_DEPTH_THRESHOLD, TRANSPARENT_GRID_THRESHOLD, bench_rows,
+                                choose_budget, choose_from_manifest)
 
 
 def _manifest(**kw):
@@ -100,7 +101,7 @@ def test_auto_config_reads_a_bench_table(tmp_path):
 
 
 def test_train_auto_on_a_capture_writes_its_reasons(tiny_capture, tmp_path, capsys):
-    from nerfbot.cli import main
+    from nerfbot.app.cli import main
 
     run = tmp_path / "run"
     assert main(["train", "--data", str(tiny_capture[0]), "--method", "auto", "--max-steps", "3",

@@ -3,8 +3,8 @@
 import numpy as np
 import torch
 
-from nerfbot.background import BakedBackground, FixedBackground, LearnedBackground
-from nerfbot.octahedral import direction_grid
+from nerfbot.fields.background import BakedBackground, FixedBackground, LearnedBackground
+from nerfbot.ops.octahedral import direction_grid
 
 
 def _directions(n=20000, seed=0):

@@ -16,12 +16,12 @@ import torch
 import trimesh
 from torch import nn
 
-from nerfbot import bench_exec
-from nerfbot.bench import BenchConfig, BenchError, pareto_front, parse_option_sweep, run_bench
-from nerfbot.bench_exec import EXECUTORS, LocalExecutor, RayExecutor, make_executor
-from nerfbot.cli import main
-from nerfbot.meshing import (compare_meshes, default_density_threshold, field_mesh,
-                             surface_distance, visible_mask)
+from nerfbot.app.cli import main
+from nerfbot.bench import executors
+from nerfbot.bench.executors import EXECUTORS, LocalExecutor, RayExecutor, make_executor
+from nerfbot.bench.sweep import BenchConfig, BenchError, pareto_front, parse_option_sweep, run_bench
+from nerfbot.query.meshing import (compare_meshes, default_density_threshold, field_mesh,
+                                   surface_distance, visible_mask)
 from sims.geometry import capture_geometry, scene_meshes
 
 pytestmark = pytest.mark.slow(120)  # rough single-core seconds (tests/conftest.py)
@@ -190,7 +190,7 @@ def test_visible_mask_and_surface_distance():
 
 
 def test_downscale_dataset_scales_images_intrinsics_and_depth(tiny_capture):
-    from nerfbot.bench_point import downscale_dataset
+    from nerfbot.bench.point import downscale_dataset
     from nerfbot.data import load_dataset
 
     ds = load_dataset(tiny_capture[0])
@@ -284,7 +284,7 @@ class _FakeExecutor:
         for p in points:
             _FakeExecutor.calls.append(p["key"])
             if p["budget"] in _FakeExecutor.fail:
-                yield p, bench_exec.failure(p, "boom")
+                yield p, executors.failure(p, "boom")
                 continue
             yield p, {"key": p["key"], "status": "ok", "psnr": 10.0 + p["budget"] + p["repeat"],
                       "train_seconds": float(p["budget"]), "render_ms_per_image": 10.0,
@@ -409,7 +409,7 @@ def test_baked_method_trains_its_source_bakes_and_compares(tiny_capture, tmp_pat
 
 
 def test_a_baked_method_cannot_be_trained(tiny_capture):
-    from nerfbot.training import TrainConfig
+    from nerfbot.train.trainer import TrainConfig
 
     with pytest.raises(ValueError, match="fastnerf_cache.*--method fastnerf.*nerfbot bake"):
         TrainConfig(method="fastnerf_cache", max_steps=1).validate()

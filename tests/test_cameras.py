@@ -1,4 +1,4 @@
-"""Cameras and ray generation (nerfbot.cameras): pixel-centre convention, optical axis,
+"""Cameras and ray generation (nerfbot.ops.cameras): pixel-centre convention, optical axis,
 z-depth factor, OpenGL <-> OpenCV conversion, look_at, pose validation, downscaled rays."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from nerfbot.cameras import (Cameras, check_pose, focal_from_fov, look_at, opencv_to_opengl,
-                             opengl_to_opencv, orbit_poses, pixel_rays)
+from nerfbot.ops.cameras import (Cameras, check_pose, focal_from_fov, look_at, opencv_to_opengl,
+                                 opengl_to_opencv, orbit_poses, pixel_rays)
 
 
 def random_rotation(rng: np.random.Generator) -> np.ndarray:

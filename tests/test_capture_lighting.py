@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 
-from nerfbot.cameras import look_at, spherical_eye
+from nerfbot.ops.cameras import look_at, spherical_eye
 from sims.camera import CaptureCamera
 from sims.capture import set_lighting
 from sims.scene import load_capture_model
@@ -63,7 +63,7 @@ def test_static_lighting_removes_view_dependence(tmp_path):
 
 
 def test_capture_records_its_lighting(tmp_path):
-    from nerfbot.cli import main
+    from nerfbot.app.cli import main
 
     path = tmp_path / "box.xml"
     path.write_text(SCENE)

@@ -20,14 +20,16 @@ import numpy as np
 import pytest
 import torch
 
-from nerfbot.checkpoints import (CHECKPOINT, FORMAT, VERSION, CheckpointError, read_checkpoint,
-                                 save_checkpoint, stale_temporaries, write_durable)
-from nerfbot.cli import main
+from nerfbot.app.cli import main
 from nerfbot.data import load_dataset
-from nerfbot.encodings import HashEncoding
 from nerfbot.methods import build_model
-from nerfbot.models import resize_like_state_dict
-from nerfbot.training import TrainConfig, Trainer, load_model
+from nerfbot.models.base import resize_like_state_dict
+from nerfbot.ops.encodings import HashEncoding
+from nerfbot.train.checkpoints import (CHECKPOINT, FORMAT, VERSION, CheckpointError,
+                                       read_checkpoint, save_checkpoint, stale_temporaries,
+                                       write_durable)
+from nerfbot.train.runs import load_model
+from nerfbot.train.trainer import TrainConfig, Trainer
 
 pytestmark = pytest.mark.slow(100)  # rough single-core seconds (tests/conftest.py)
 
@@ -59,8 +61,8 @@ def _copy_run(run: Path, dest: Path) -> Path:
 
 
 def _cli(*argv: str, timeout: float = 600) -> subprocess.CompletedProcess:
-    """``python -m nerfbot.cli ARGV`` in a fresh process."""
-    return subprocess.run([sys.executable, "-m", "nerfbot.cli", *argv], cwd=ROOT,
+    """``python -m nerfbot.app.cli ARGV`` in a fresh process."""
+    return subprocess.run([sys.executable, "-m", "nerfbot.app.cli", *argv], cwd=ROOT,
                           capture_output=True, text=True, timeout=timeout, env=_env())
 
 
@@ -191,7 +193,7 @@ def test_a_damaged_checkpoint_falls_back_to_the_previous_one(run, dataset, tmp_p
                                                               how, message):
     folder = _copy_run(run, tmp_path / "run")
     _damage(folder / CHECKPOINT, how)
-    with caplog.at_level(logging.WARNING, logger="nerfbot.checkpoints"):
+    with caplog.at_level(logging.WARNING, logger="nerfbot.train.checkpoints"):
         model, info = load_model(folder)
     assert info["step"] == 2
     warning = " ".join(r.getMessage() for r in caplog.records)
@@ -269,7 +271,7 @@ def test_a_failed_write_leaves_the_checkpoint_and_no_temporary(tmp_path, monkeyp
 
 def test_a_complete_checkpoint_exists_at_every_rename(tmp_path, monkeypatch):
     """Every rename of a durable write happens with a complete, synced checkpoint in place."""
-    import nerfbot.checkpoints as ck
+    import nerfbot.train.checkpoints as ck
 
     path = tmp_path / CHECKPOINT
     synced, seen = set(), []
@@ -427,7 +429,7 @@ def _kill_during_a_checkpoint_write(argv: list[str], run: Path, log: Path) -> st
     way). "landed": the temporary is still there after the kill; "missed": the write finished
     first; "finished": the run ended without such a write."""
     with open(log, "a") as err:
-        proc = subprocess.Popen([sys.executable, "-m", "nerfbot.cli", *argv], cwd=ROOT,
+        proc = subprocess.Popen([sys.executable, "-m", "nerfbot.app.cli", *argv], cwd=ROOT,
                                 env=_env(), stdout=subprocess.DEVNULL, stderr=err)
     tmp = run / f".{CHECKPOINT}.tmp{proc.pid}"
     armed = False

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from nerfbot.cli import main
+from nerfbot.app.cli import main
 from nerfbot.data import load_dataset
 
 EVAL_KEYS = {"psnr", "ssim", "depth_mae_m", "render_ms_per_image", "train_seconds", "num_params",
@@ -91,8 +91,8 @@ def test_render_depth_modes_and_the_auto_runs_default(tiny_run, tmp_path, capsys
     reached); a run whose auto.json asks for threshold depth (glass) renders it by default."""
     import shutil
 
-    from nerfbot.query import render_image
-    from nerfbot.training import load_model
+    from nerfbot.query.render import render_image
+    from nerfbot.train.runs import load_model
 
     th = 1.0  # 1/m: the 30-step run is still faint (5 /m, the glass default, is never reached)
     model, _ = load_model(tiny_run)

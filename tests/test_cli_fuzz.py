@@ -18,7 +18,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from nerfbot.cli import build_parser, main
+from nerfbot.app.cli import build_parser, main
 
 #: Flags whose value is a path (every command's inputs and outputs).
 PATH_DESTS = {"data", "out", "run", "poses", "bench_table", "plot", "scene"}

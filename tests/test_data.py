@@ -12,9 +12,9 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from nerfbot.cameras import look_at
 from nerfbot.data import Dataset, DatasetError, estimate_bounds_from_cameras, load_dataset
 from nerfbot.data.bounds import estimate_bounds_with_rule
+from nerfbot.ops.cameras import look_at
 
 W, H = 16, 12
 FL = 14.0

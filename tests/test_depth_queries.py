@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 import torch
 
-from nerfbot.background import FixedBackground
-from nerfbot.cameras import Cameras, look_at
-from nerfbot.depth_eval import best_threshold
+from nerfbot.eval.depth_eval import best_threshold
+from nerfbot.fields.background import FixedBackground
 from nerfbot.fields.base import Field
-from nerfbot.models import OccupancyModel
-from nerfbot.pointcloud import cloud_arrays, depth_to_cloud, fuse_clouds
-from nerfbot.query import depth, render_image
+from nerfbot.models.occupancy import OccupancyModel
+from nerfbot.ops.cameras import Cameras, look_at
+from nerfbot.ops.pointcloud import cloud_arrays, depth_to_cloud, fuse_clouds
+from nerfbot.query.render import depth, render_image
 
 SLAB_DENSITY = 40.0      # 1/m: faint, like glass (opacity 1 - exp(-40 * 0.02) = 0.55)
 SLAB = (0.50, 0.52)      # z range of the slab, metres
@@ -135,7 +135,7 @@ def test_best_threshold_needs_enough_valid_pixels():
 
 
 def test_pooled_sweeps_weight_by_pixels_with_a_prediction():
-    from nerfbot.depth_eval import DepthSweep, pool_sweeps
+    from nerfbot.eval.depth_eval import DepthSweep, pool_sweeps
 
     def sweep(mae, valid, pixels, n_images):
         row = dict(mae_m=mae, rmse_m=2 * mae, valid_fraction=valid, pixels=pixels)
@@ -173,7 +173,7 @@ def test_supersampled_render_averages_colour_over_the_pixel_and_keeps_centre_dep
     """render_image(supersample=S): rgb and opacity are the S x S cell-centre rays' means (the
     area average of a render at S times the resolution); the depths are the centre ray's;
     None takes the model's own setting."""
-    from nerfbot.models import OccupancyModelConfig
+    from nerfbot.models.occupancy import OccupancyModelConfig
 
     aabb = torch.tensor([[-1.0, -1.0, 0.0], [1.0, 1.0, 1.0]])
     model = OccupancyModel(StripedSlabField(), FixedBackground((1.0, 1.0, 1.0)), aabb,

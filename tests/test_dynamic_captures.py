@@ -6,14 +6,13 @@ from __future__ import annotations
 import argparse
 import json
 
+import mujoco
 import numpy as np
 import pytest
 
 import sims  # noqa: F401  (selects the GL backend before mujoco is imported)
-import mujoco
-
 from nerfbot.data import load_dataset
-from nerfbot.cameras import look_at, spherical_eye
+from nerfbot.ops.cameras import look_at, spherical_eye
 from sims.articulated import capture_articulated, config_schedule
 from sims.camera import CaptureCamera
 from sims.cli import add_capture_arguments, run_capture

@@ -3,14 +3,13 @@ plumbing: checkpoints, eval on held-out times, sweeps, model choice from the man
 
 from __future__ import annotations
 
-
 import cv2
 import numpy as np
 import pytest
 import torch
 
-from nerfbot.conditioning import Conditioning, dataset_conditioning, frame_conditions
 from nerfbot.data import load_dataset
+from nerfbot.data.conditioning import Conditioning, dataset_conditioning, frame_conditions
 from nerfbot.fields.dnerf import DNeRFField, DNeRFFieldConfig
 
 pytestmark = pytest.mark.slow(65)  # rough single-core seconds (tests/conftest.py)
@@ -65,8 +64,8 @@ def test_dataset_conditioning_kinds(rollout, tiny_capture):
 @pytest.fixture(scope="module")
 def trained(rollout, tmp_path_factory):
     """ngp, tnerf and dnerf, 150 steps each on the rollout; test metrics at held-out times."""
-    from nerfbot.evaluation import evaluate
-    from nerfbot.training import TrainConfig, Trainer
+    from nerfbot.eval.evaluation import evaluate
+    from nerfbot.train.trainer import TrainConfig, Trainer
 
     ds = load_dataset(rollout)
     runs = {}
@@ -90,8 +89,8 @@ def test_time_conditioned_fields_train_and_evaluate_at_held_out_times(trained):
 
 
 def test_checkpoint_keeps_the_conditioning_and_render_sweeps_time(trained, tmp_path, capsys):
-    from nerfbot.cli import main
-    from nerfbot.training import load_model
+    from nerfbot.app.cli import main
+    from nerfbot.train.runs import load_model
 
     run = trained["dnerf"][0]
     model, info = load_model(run)
@@ -115,7 +114,7 @@ def test_checkpoint_keeps_the_conditioning_and_render_sweeps_time(trained, tmp_p
 
 def test_the_manifest_routes_captures_to_the_right_field(tiny_capture, rollout):
     """A static capture gets no time or joint conditioning; a rollout gets a deformation field."""
-    from nerfbot.auto import choose_from_manifest
+    from nerfbot.train.auto import choose_from_manifest
 
     static = load_dataset(tiny_capture[0])
     assert choose_from_manifest(static.manifest).method == "ngp"

@@ -1,4 +1,4 @@
-"""Input encodings (nerfbot.encodings): the numba hash-grid kernels against the plain-torch
+"""Input encodings (nerfbot.ops.encodings): the numba hash-grid kernels against the plain-torch
 twin evaluated in float64, the level layout, spherical harmonics against scipy, and the
 frequency encoding."""
 
@@ -11,10 +11,10 @@ import pytest
 import torch
 from scipy.special import sph_harm_y
 
-from nerfbot.encodings import (FrequencyEncoding, HashEncoding, SHEncoding,
-                               hash_encode_reference, spherical_harmonics)
 from nerfbot.kernels import hashgrid as hk
 from nerfbot.kernels.hashgrid import level_layout
+from nerfbot.ops.encodings import (FrequencyEncoding, HashEncoding, SHEncoding,
+                                   hash_encode_reference, spherical_harmonics)
 
 # ----------------------------------------------------------------------------- hash grid
 

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from nerfbot.data import load_dataset
-from nerfbot.evaluation import _PooledPSNR, evaluate
+from nerfbot.eval.evaluation import _PooledPSNR, evaluate
 from nerfbot.methods import build_model
-from nerfbot.query import render_image
+from nerfbot.query.render import render_image
 
 
 def test_pooled_psnr_arithmetic():

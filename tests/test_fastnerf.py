@@ -9,15 +9,17 @@ import numpy as np
 import pytest
 import torch
 
-from nerfbot.cli import main
+from nerfbot.app.cli import main
+from nerfbot.bake.fastnerf_cache import bake_cache
 from nerfbot.data import load_dataset
-from nerfbot.evaluation import evaluate
-from nerfbot.fields.fastnerf import FastNeRFField, FastNeRFFieldConfig, bake_cache
-from nerfbot.fields.fastnerf_cache import FastNeRFCacheConfig, FastNeRFCacheModel
+from nerfbot.eval.evaluation import evaluate
+from nerfbot.fields.fastnerf import FastNeRFField, FastNeRFFieldConfig
 from nerfbot.methods import build_model
-from nerfbot.octahedral import direction_grid, octahedral_decode, octahedral_encode
-from nerfbot.query import depth, render_image
-from nerfbot.training import TrainConfig, Trainer, load_model
+from nerfbot.models.fastnerf_cache import FastNeRFCacheConfig, FastNeRFCacheModel
+from nerfbot.ops.octahedral import direction_grid, octahedral_decode, octahedral_encode
+from nerfbot.query.render import depth, render_image
+from nerfbot.train.runs import load_model
+from nerfbot.train.trainer import TrainConfig, Trainer
 
 pytestmark = pytest.mark.slow(30)  # rough single-core seconds (tests/conftest.py)
 
@@ -213,7 +215,7 @@ def test_fused_renderer_handles_long_rays_and_empty_caches(trained, baked):
     _, ds = trained
     model = baked[0]
     rays = _test_rays(ds, 1)
-    import nerfbot.fields.fastnerf_cache as fc
+    import nerfbot.models.fastnerf_cache as fc
 
     default = fc.SLOT_SAMPLES
     full = model.render_fused(rays)
@@ -303,7 +305,7 @@ def test_empty_distance_is_the_capped_chebyshev_distance_to_occupied_cells():
 
 
 def test_a_cache_baked_by_an_older_nerfbot_asks_to_be_baked_again():
-    from nerfbot.fields.fastnerf_cache import CachedField
+    from nerfbot.models.fastnerf_cache import CachedField
 
     field = CachedField(torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]))
     with pytest.raises(ValueError, match="bake it again"):

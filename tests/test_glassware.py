@@ -2,16 +2,14 @@
 
 from __future__ import annotations
 
-import sims  # noqa: F401  (selects the GL backend before mujoco is imported)
-
 import numpy as np
 import pytest
 
+import sims  # noqa: F401  (selects the GL backend before mujoco is imported)
 from nerfbot.data import load_dataset
 from sims.capture import capture
-from sims.cli import default_rig
 from sims.glassware import object_names, vessel_mesh, vessels
-from sims.rigs import make_test_rig
+from sims.rigs import default_rig, make_test_rig
 from sims.scene import load_model, resolve_scene
 from sims.sensor import DepthSensorModel, valid_fraction
 
@@ -53,7 +51,7 @@ def test_placement_is_seeded_and_objects_do_not_overlap(tmp_path, monkeypatch):
 def test_glazed_scene_is_the_glassware_scene_without_the_glass(tmp_path, monkeypatch):
     import mujoco
 
-    from nerfbot.auto import choose_from_manifest
+    from nerfbot.train.auto import choose_from_manifest
     from sims.manifest import scene_manifest
 
     monkeypatch.setenv("NERFBOT_CACHE", str(tmp_path))

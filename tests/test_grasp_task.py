@@ -3,17 +3,16 @@ source, object selection and reporting."""
 
 from __future__ import annotations
 
-import sims  # noqa: F401  (selects the GL backend before mujoco is imported)
-
 import json
 
 import numpy as np
 import pytest
 
+import sims  # noqa: F401  (selects the GL backend before mujoco is imported)
+from sims.sensor import DepthSensorModel
 from tasks.grasp import (DEPTH_SOURCES, Attempt, DepthContext, GraspTaskConfig, World,
                          attempt_object, format_table, main, plot_success, query_poses,
                          select_objects, summarize)
-from sims.sensor import DepthSensorModel
 
 
 @pytest.fixture(scope="module")

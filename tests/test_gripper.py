@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import dataclasses
 
-import sims  # noqa: F401  (selects the GL backend before mujoco is imported)
-
 import mujoco
 import numpy as np
 import pytest
 
+import sims  # noqa: F401  (selects the GL backend before mujoco is imported)
 from sims.camera import capture_scene_option
 from sims.gl import make_renderer
 from sims.gripper import (GRIPPER, GRIPPER_GEOM_GROUP, PARK_POSITION, add_gripper, gripper_ids,

@@ -1,6 +1,6 @@
 """Gradient of the hash encoding w.r.t. its input positions on the fast numba path
 (nerfbot.kernels.hashgrid.hash_backward_input), against the autograd of the plain-torch twin
-:func:`nerfbot.encodings.hash_encode_reference` and against finite differences.
+:func:`nerfbot.ops.encodings.hash_encode_reference` and against finite differences.
 
 The trilinear interpolation is continuous but its derivative jumps across cell faces, so the
 exact comparisons use points at least ``MARGIN`` cells away from every face of every level; on a
@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 import torch
 
-from nerfbot.encodings import HashEncoding, hash_encode_reference
 from nerfbot.kernels import hashgrid as hk
+from nerfbot.ops.encodings import HashEncoding, hash_encode_reference
 
 CONFIGS = {
     # every level dense: (res + 1)^3 <= 2^14
@@ -173,7 +173,7 @@ def test_table_grad_unchanged_when_x_requires_grad(name):
 
 
 def test_first_order_backward_runs_the_kernel_not_the_twin(monkeypatch):
-    import nerfbot.encodings as encodings
+    import nerfbot.ops.encodings as encodings
 
     calls = []
     kernel = hk.hash_backward_input

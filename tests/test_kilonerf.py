@@ -10,20 +10,23 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from nerfbot.background import FixedBackground
-from nerfbot.cameras import Rays
 from nerfbot.data import load_dataset
-from nerfbot.encodings import FrequencyEncoding
-from nerfbot.evaluation import evaluate
+from nerfbot.eval.evaluation import evaluate
+from nerfbot.fields.background import FixedBackground
 from nerfbot.fields.base import trunc_exp
-from nerfbot.fields.kilonerf import (KiloNeRFConfig, KiloNeRFField, KiloNeRFFieldConfig,
-                                     KiloNeRFModel, Layout, chunk_layout_reference)
+from nerfbot.fields.kilonerf import (KiloNeRFField, KiloNeRFFieldConfig, Layout,
+                                     chunk_layout_reference)
 from nerfbot.kernels import kilonerf as kk
 from nerfbot.methods import build_model
-from nerfbot.metrics import psnr
-from nerfbot.models import OccupancyModel, OccupancyModelConfig, resize_like_state_dict
-from nerfbot.query import render_image
-from nerfbot.training import TrainConfig, Trainer, load_model
+from nerfbot.models.base import resize_like_state_dict
+from nerfbot.models.kilonerf import KiloNeRFConfig, KiloNeRFModel
+from nerfbot.models.occupancy import OccupancyModel, OccupancyModelConfig
+from nerfbot.ops.cameras import Rays
+from nerfbot.ops.encodings import FrequencyEncoding
+from nerfbot.ops.metrics import psnr
+from nerfbot.query.render import render_image
+from nerfbot.train.runs import load_model
+from nerfbot.train.trainer import TrainConfig, Trainer
 
 pytestmark = pytest.mark.slow(80)  # rough single-core seconds (tests/conftest.py)
 

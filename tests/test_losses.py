@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from nerfbot.losses import distortion_loss
+from nerfbot.ops.losses import distortion_loss
 
 
 def _brute_force(weights, t0, t1, ray_indices, n_rays, scale):

@@ -13,10 +13,11 @@ import pytest
 import torch
 
 from nerfbot.data import DatasetError, load_dataset
-from nerfbot.evaluation import evaluate
-from nerfbot.metrics import psnr, ssim
-from nerfbot.training import PixelBank, TrainConfig, Trainer, ValidPixels, build_from_spec, \
-    model_spec
+from nerfbot.data.pixels import PixelBank, ValidPixels
+from nerfbot.eval.evaluation import evaluate
+from nerfbot.ops.metrics import psnr, ssim
+from nerfbot.train.runs import build_from_spec, model_spec
+from nerfbot.train.trainer import TrainConfig, Trainer
 
 pytestmark = pytest.mark.slow(20)  # rough single-core seconds (tests/conftest.py)
 

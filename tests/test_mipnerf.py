@@ -10,17 +10,19 @@ import numpy as np
 import pytest
 import torch
 
-from nerfbot.cameras import PIXEL_RADIUS, Cameras, Rays, look_at
-from nerfbot.cli import main
+from nerfbot.app.cli import main
 from nerfbot.data import load_dataset
-from nerfbot.encodings import FrequencyEncoding
-from nerfbot.evaluation import downscale_area, downscale_depth, evaluate
-from nerfbot.fields.mipnerf import (MipNeRFField, MipNeRFFieldConfig, blurred_weights,
-                                    conical_frustum_gaussian, integrated_pos_enc, lift_gaussian)
+from nerfbot.data.pixels import PixelBank
+from nerfbot.eval.evaluation import downscale_area, downscale_depth, evaluate
+from nerfbot.fields.mipnerf import (MipNeRFField, MipNeRFFieldConfig, conical_frustum_gaussian,
+                                    integrated_pos_enc, lift_gaussian)
 from nerfbot.methods import build_model
-from nerfbot.metrics import psnr
-from nerfbot.query import render_image
-from nerfbot.training import PixelBank, load_model
+from nerfbot.models.mipnerf import blurred_weights
+from nerfbot.ops.cameras import PIXEL_RADIUS, Cameras, Rays, look_at
+from nerfbot.ops.encodings import FrequencyEncoding
+from nerfbot.ops.metrics import psnr
+from nerfbot.query.render import render_image
+from nerfbot.train.runs import load_model
 
 # A small mip-NeRF: 100 steps of this take seconds on the 32x32 capture.
 TINY_MIP = {"width": 64, "depth": 4, "skip": 2, "color_width": 32, "coarse_samples": 16,

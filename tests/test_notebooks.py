@@ -17,11 +17,10 @@ import json
 import math
 from pathlib import Path
 
-import numpy as np
-import pytest
-
 import nbclient
 import nbformat
+import numpy as np
+import pytest
 
 pytestmark = pytest.mark.slow(320)  # rough single-core seconds (tests/conftest.py)
 

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from nerfbot.cli import main
+from nerfbot.app.cli import main
 from nerfbot.data.outputs import MARKER, check_output_folder, folder_kind, read_marker
 
 pytestmark = pytest.mark.slow(75)  # rough single-core seconds (tests/conftest.py)
@@ -235,10 +235,10 @@ def test_bake_refuses_the_run_itself_and_other_folders(tmp_path, moved_run, tiny
 
 
 def test_write_baked_run_is_relocatable_and_guarded(tmp_path, moved_run):
-    from nerfbot.baking import write_baked_run
+    from nerfbot.train.baked_runs import write_baked_run
     from nerfbot.data.identity import dataset_identity
     from nerfbot.data.run_dataset import resolve_run_dataset
-    from nerfbot.training import load_model
+    from nerfbot.train.runs import load_model
 
     _, run, data = moved_run
     model, info = load_model(run)

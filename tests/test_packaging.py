@@ -5,6 +5,8 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+from nerfbot.methods import METHODS
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -31,10 +33,50 @@ def test_console_script_and_packages_declared():
     import tomllib
 
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
-    assert project["scripts"]["nerfbot"] == "nerfbot.cli:main"
+    assert project["scripts"]["nerfbot"] == "nerfbot.app.cli:main"
     for dep in ("torch", "mujoco", "pycolmap", "open3d", "opencv-contrib-python-headless",
                 "trimesh", "numpy", "tqdm"):
         assert any(d.startswith(dep) for d in project["dependencies"]), dep
     test_extra = project["optional-dependencies"]["test"]
     for dep in ("pytest", "hypothesis", "scipy", "nbclient", "nbformat", "ipykernel"):
         assert any(d.startswith(dep) for d in test_extra), dep
+
+
+def _readme_section(title: str) -> str:
+    return (ROOT / "README.md").read_text().split(f"## {title}", 1)[1].split("\n## ", 1)[0]
+
+
+def test_readme_layout_lists_every_folder():
+    """The layout block names every nerfbot subpackage and top-level module, and the project's
+    top-level folders; everything it names exists."""
+    block = re.search(r"```\n(.+?)\n```", _readme_section("Layout"), re.S).group(1)
+    listed = {line.split()[0] for line in block.splitlines() if line.strip()}
+    nerfbot = ROOT / "nerfbot"
+    expected = {f"nerfbot/{p.name}/" for p in nerfbot.iterdir()
+                if p.is_dir() and (p / "__init__.py").exists()}
+    expected |= {f"nerfbot/{p.name}" for p in nerfbot.glob("*.py") if p.name != "__init__.py"}
+    expected |= {"sims/", "tasks/", "docs/", "notebooks/", "tests/"}
+    assert listed == expected, (f"README layout: missing {sorted(expected - listed)}, "
+                                f"stale {sorted(listed - expected)}")
+
+
+def test_readme_method_table_names_each_variants_files():
+    """One row per registered method; its files exist and include the module of every config
+    the registry builds it with (its field, its renderer, its bake recipe)."""
+    rows = {}
+    for line in _readme_section("Methods").splitlines():
+        match = re.match(r"\| `(\w+)` \|", line)
+        if match:
+            rows[match.group(1)] = line.rstrip().rstrip("|").rsplit("|", 1)[1]
+    assert set(rows) == set(METHODS)
+    for method, cell in rows.items():
+        files = set(re.findall(r"`([\w/]+\.py)`", cell))
+        assert files, f"README: no files for {method}"
+        for name in files:
+            assert (ROOT / "nerfbot" / name).is_file(), f"README: {method}: no nerfbot/{name}"
+        spec = METHODS[method]
+        configs = spec.configs + (spec.baked_from.configs if spec.baked_from else ())
+        for config in configs:
+            module = type(config).__module__.removeprefix("nerfbot.").replace(".", "/") + ".py"
+            if module.startswith(("fields/", "models/", "bake/")):
+                assert module in files, f"README: {method} is built with {module}, not listed"

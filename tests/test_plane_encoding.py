@@ -1,4 +1,4 @@
-"""Factorised plane encoding (nerfbot.encodings.PlaneEncoding): the numba kernels against the
+"""Factorised plane encoding (nerfbot.ops.encodings.PlaneEncoding): the numba kernels against the
 plain-torch twin, the table layout, clamping and NaN handling, the K-Planes regularisers."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from nerfbot.encodings import PlaneEncoding, plane_encode_reference, plane_pairs
 from nerfbot.kernels.planes import plane_layout
+from nerfbot.ops.encodings import PlaneEncoding, plane_encode_reference, plane_pairs
 
 CONFIGS = {
     "space": dict(in_dim=3, n_levels=2, n_features=3, spatial_res=(4, 7)),

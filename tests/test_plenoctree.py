@@ -10,18 +10,20 @@ import numpy as np
 import pytest
 import torch
 
-from nerfbot.background import make_background
-from nerfbot.cameras import Rays
+from nerfbot.bake.plenoctree import bake_octree, finetune_octree
 from nerfbot.data import load_dataset
-from nerfbot.encodings import spherical_harmonics
-from nerfbot.evaluation import evaluate
+from nerfbot.eval.evaluation import evaluate
+from nerfbot.fields.background import make_background
 from nerfbot.fields.nerfsh import NeRFSHField, sh_color
 from nerfbot.methods import build_model
-from nerfbot.plenoctree import (PlenOctreeConfig, PlenOctreeModel, bake_octree, build_octree,
-                                finetune_octree, octree_lookup_reference, walk_segments,
-                                walk_segments_reference)
-from nerfbot.sampling import ray_aabb
-from nerfbot.training import TrainConfig, Trainer, load_model
+from nerfbot.models.plenoctree import (PlenOctreeConfig, PlenOctreeModel, build_octree,
+                                       octree_lookup_reference, walk_segments,
+                                       walk_segments_reference)
+from nerfbot.ops.cameras import Rays
+from nerfbot.ops.encodings import spherical_harmonics
+from nerfbot.ops.sampling import ray_aabb
+from nerfbot.train.runs import load_model
+from nerfbot.train.trainer import TrainConfig, Trainer
 
 pytestmark = pytest.mark.slow(35)  # rough single-core seconds (tests/conftest.py)
 
@@ -150,7 +152,7 @@ def test_build_octree_lookup_finds_every_leaf_and_nothing_else():
     expect = np.array([tuple(c) in occupied and bool(((c >= 0) & (c < n)).all()) for c in cells])
     assert np.array_equal(fast.numpy() >= 0, expect)
     # leaf_cells inverts build_octree
-    from nerfbot.plenoctree import leaf_cells
+    from nerfbot.models.plenoctree import leaf_cells
 
     cells_back, levels = leaf_cells(field.child)
     assert np.array_equal(cells_back, ijk[order]) and (levels == 5).all()
@@ -201,7 +203,7 @@ def _assert_same_render(model, rays, fused, ref):
 def test_fused_renderer_equals_differentiable_path_on_random_tree(sh_degree, slots, monkeypatch):
     """Same pixels, depths and packed samples; ``slots`` = 1 makes most rays overflow their
     first-pass scratch and be rendered a second time."""
-    import nerfbot.plenoctree as plenoctree
+    import nerfbot.models.plenoctree as plenoctree
 
     monkeypatch.setattr(plenoctree, "SLOT_SEGMENTS", slots)
     model, _, _ = _random_tree(seed=3, sh_degree=sh_degree)
@@ -278,7 +280,7 @@ def test_fused_renderer_equals_differentiable_path_on_baked_octree(tiny_capture,
 
 def test_visibility_pruning_drops_unseen_leaves_and_keeps_the_image(tiny_capture, baked):
     """Leaves no training pixel weighs at >= 0.01 go; test renders barely change."""
-    from nerfbot.plenoctree import leaf_visibility, prune_leaves
+    from nerfbot.bake.plenoctree import leaf_visibility, prune_leaves
 
     octree, spec, _ = baked
     ds = load_dataset(tiny_capture[0])
@@ -303,7 +305,7 @@ def test_pruning_backs_off_until_the_training_views_keep_their_pixels(tiny_captu
     """A threshold that would cut visible leaves (0.5) is halved until the training views
     render within PRUNE_FIDELITY_DB of the unpruned tree; a zero-weight 'seen' prunes only
     unseen leaves at the first try."""
-    from nerfbot.plenoctree import PRUNE_FIDELITY_DB, leaf_visibility, prune_with_fidelity
+    from nerfbot.bake.plenoctree import PRUNE_FIDELITY_DB, leaf_visibility, prune_with_fidelity
 
     octree, _, _ = baked
     ds = load_dataset(tiny_capture[0])
@@ -360,7 +362,7 @@ def test_bake_rejects_bad_inputs(sh_run):
 
 
 def test_cli_bake_octree_writes_a_run_that_eval_loads(tiny_capture, sh_run, tmp_path, capsys):
-    from nerfbot.cli import main
+    from nerfbot.app.cli import main
 
     run, _, _ = sh_run
     out = tmp_path / "octree"

@@ -10,11 +10,12 @@ import pytest
 import torch
 
 from nerfbot.data import load_dataset
-from nerfbot.evaluation import evaluate
+from nerfbot.eval.evaluation import evaluate
 from nerfbot.fields.plenoxels import PlenoxelField, PlenoxelFieldConfig
 from nerfbot.kernels import densegrid as dg
 from nerfbot.methods import build_model
-from nerfbot.training import TrainConfig, Trainer, load_model
+from nerfbot.train.runs import load_model
+from nerfbot.train.trainer import TrainConfig, Trainer
 
 AABB = [[-0.6, -0.4, 0.0], [0.6, 0.4, 0.9]]
 # small batches keep a step cheap on 32x32 images

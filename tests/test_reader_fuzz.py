@@ -20,9 +20,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from nerfbot.cameras import look_at
-from nerfbot.conditioning import dataset_conditioning, frame_conditions
 from nerfbot.data import Dataset, DatasetError, load_dataset
+from nerfbot.data.conditioning import dataset_conditioning, frame_conditions
+from nerfbot.ops.cameras import look_at
 
 W, H = 8, 6
 FL = 7.0
@@ -525,7 +525,7 @@ def test_missing_split_is_a_dataset_error_naming_the_available_splits(tmp_path):
 
 def test_only_a_test_split_refuses_training_in_one_line(tmp_path):
     """A Blender folder with only transforms_test.json: training says there is no train split."""
-    from nerfbot.training import TrainConfig, Trainer
+    from nerfbot.train.trainer import TrainConfig, Trainer
 
     (tmp_path / "test").mkdir()
     (tmp_path / "test" / "r_0.png").write_bytes(png_bytes(_rgb()))
@@ -715,7 +715,7 @@ def test_unreadable_json_variants_are_dataset_errors(tmp_path):
 
 
 def test_cli_reports_a_missing_train_split_in_one_line(tmp_path, capsys):
-    from nerfbot.cli import main
+    from nerfbot.app.cli import main
 
     doc = _dataset(tmp_path / "ds")
     doc["test_filenames"] = ["f0.png"]
@@ -730,7 +730,7 @@ def test_cli_trains_a_one_frame_dataset_without_test_metrics_and_eval_refuses(tm
                                                                               caplog):
     """The only frame trains (a warning says there is no test frame); evaluating the empty
     test split is a one-line error, not NaN."""
-    from nerfbot.cli import main
+    from nerfbot.app.cli import main
 
     doc = _dataset(tmp_path / "ds", n=1)
     assert main(["train", "--data", str(tmp_path / "ds"), "--out", str(tmp_path / "run"),

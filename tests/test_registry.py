@@ -17,18 +17,19 @@ import torch
 from torch import nn
 
 from nerfbot import method_names
-from nerfbot.cli import build_parser, main
-from nerfbot.conditioning import Conditioning
+from nerfbot.app.cli import build_parser, main
 from nerfbot.data import load_dataset
-from nerfbot.encodings import FrequencyEncoding
+from nerfbot.data.conditioning import Conditioning
 from nerfbot.fields.base import BoxNormalizer, Field, mlp, trunc_exp
 from nerfbot.fields.ngp import NGPFieldConfig
 from nerfbot.methods import (METHODS, MethodSpec, bake_model, bake_option_names, build_model,
                              method_defaults, occupancy_build, option_names, register_method,
                              sweep_option_names)
-from nerfbot.models import OccupancyModelConfig
-from nerfbot.query import render_image
-from nerfbot.training import TrainConfig, Trainer, load_model
+from nerfbot.models.occupancy import OccupancyModelConfig
+from nerfbot.ops.encodings import FrequencyEncoding
+from nerfbot.query.render import render_image
+from nerfbot.train.runs import load_model
+from nerfbot.train.trainer import TrainConfig, Trainer
 
 pytestmark = pytest.mark.slow(30)  # rough single-core seconds (tests/conftest.py)
 
@@ -247,9 +248,9 @@ HEAVY = ("torch", "numba", "mujoco")
 
 
 def _imported(argv: list[str]) -> list[str]:
-    """The modules ``python -m nerfbot.cli ARGV`` imports, in the order their imports finish
+    """The modules ``python -m nerfbot.app.cli ARGV`` imports, in the order their imports finish
     (``-X importtime``); the command must exit 0."""
-    done = subprocess.run([sys.executable, "-X", "importtime", "-m", "nerfbot.cli", *argv],
+    done = subprocess.run([sys.executable, "-X", "importtime", "-m", "nerfbot.app.cli", *argv],
                           cwd=ROOT, capture_output=True, text=True, timeout=120, check=False)
     assert done.returncode == 0, done.stderr[-2000:]
     return [line.rsplit("|", 1)[1].strip() for line in done.stderr.splitlines()

@@ -1,4 +1,4 @@
-"""Volume-rendering arithmetic (nerfbot.rendering) and the density activation (trunc_exp).
+"""Volume-rendering arithmetic (nerfbot.ops.rendering) and the density activation (trunc_exp).
 
 Every result is compared with an independent float64 reference written here as plain Python
 loops over rays (no packed tricks, no torch cumsum):
@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from nerfbot.fields.base import trunc_exp
-from nerfbot.rendering import EMPTY_OPACITY, composite, render_weights
+from nerfbot.ops.rendering import EMPTY_OPACITY, composite, render_weights
 
 INF = float("inf")
 
@@ -535,7 +535,7 @@ def test_threshold_depth_slab_no_crossing_and_first_sample():
     """Ray 0 enters a slab of density 10 at t = 2 (samples every 0.1 m, midpoints 1.95 / 2.05):
     m = 5 crosses half way, at 2.0. Ray 1 holds only faint density: never crosses, invalid
     (not the near plane). Ray 2 starts inside the slab: its first sample's start. Ray 3 is empty."""
-    from nerfbot.rendering import threshold_depth
+    from nerfbot.ops.rendering import threshold_depth
 
     t0 = torch.arange(10, 30, dtype=torch.float64) * 0.1       # ray 0: 1.0 .. 2.9
     s0 = torch.where(t0 + 0.05 >= 2.0, 10.0, 0.0).double()

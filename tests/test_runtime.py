@@ -10,7 +10,7 @@ import sys
 PROBE = """
 import ctypes, sys
 if sys.argv[1] == "keep":
-    from nerfbot.runtime import keep_freed_memory
+    from nerfbot.ops.runtime import keep_freed_memory
     assert keep_freed_memory()
 import torch
 
@@ -33,7 +33,7 @@ def _mmapped_bytes(mode: str) -> int:
 
 
 def test_keep_freed_memory_serves_large_blocks_from_the_heap():
-    from nerfbot.runtime import keep_freed_memory
+    from nerfbot.ops.runtime import keep_freed_memory
 
     if platform.libc_ver()[0] != "glibc":  # no mallopt: the call must change nothing, say so
         assert keep_freed_memory() is False
@@ -44,7 +44,7 @@ def test_keep_freed_memory_serves_large_blocks_from_the_heap():
 
 def test_keep_freed_memory_reports_whether_it_applied():
     # Run in a child: the setting is process-wide and cannot be undone here.
-    code = "from nerfbot.runtime import keep_freed_memory as k; print(k(), k())"
+    code = "from nerfbot.ops.runtime import keep_freed_memory as k; print(k(), k())"
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     expected = platform.libc_ver()[0] == "glibc"
     assert done.stdout.split() == [str(expected)] * 2  # idempotent

@@ -1,4 +1,4 @@
-"""Sample placement (nerfbot.sampling): box clipping, stratified and pdf sampling, and the
+"""Sample placement (nerfbot.ops.sampling): box clipping, stratified and pdf sampling, and the
 occupancy grid (numba marcher vs its plain-torch twin, grid updates)."""
 
 from __future__ import annotations
@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from nerfbot.rendering import composite
-from nerfbot.sampling import (OccupancyGrid, march_reference, pdf_samples, ray_aabb,
-                              ray_aabb_reference, stratified_samples)
+from nerfbot.ops.rendering import composite
+from nerfbot.ops.sampling import (OccupancyGrid, march_reference, pdf_samples, ray_aabb,
+                                  ray_aabb_reference, stratified_samples)
 
 SQ3 = math.sqrt(3.0)
 

@@ -11,13 +11,12 @@ import math
 from dataclasses import replace
 
 import cv2
+import mujoco
 import numpy as np
 import pytest
 
 import sims  # noqa: F401  (selects the GL backend before mujoco is imported)
-import mujoco
-
-from nerfbot.cameras import check_pose, look_at
+from nerfbot.ops.cameras import check_pose, look_at
 from sims import capture as capture_mod
 from sims.camera import CaptureCamera, Frame
 from sims.capture import capture

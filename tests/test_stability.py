@@ -25,15 +25,15 @@ import torch.nn.functional as F
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from nerfbot.cameras import Rays, look_at, orbit_poses
-from nerfbot.encodings import (FrequencyEncoding, HashEncoding, hash_encode_reference,
-                               spherical_harmonics)
 from nerfbot.fields.base import trunc_exp
-from nerfbot.losses import distortion_loss
 from nerfbot.methods import build_model
-from nerfbot.rendering import EMPTY_OPACITY, composite, render_weights
-from nerfbot.sampling import (OccupancyGrid, march_reference, pdf_samples, ray_aabb,
-                              stratified_samples)
+from nerfbot.ops.cameras import Rays, look_at, orbit_poses
+from nerfbot.ops.encodings import (FrequencyEncoding, HashEncoding, hash_encode_reference,
+                                   spherical_harmonics)
+from nerfbot.ops.losses import distortion_loss
+from nerfbot.ops.rendering import EMPTY_OPACITY, composite, render_weights
+from nerfbot.ops.sampling import (OccupancyGrid, march_reference, pdf_samples, ray_aabb,
+                                  stratified_samples)
 
 INF = float("inf")
 F16, BF16, F32, F64 = torch.float16, torch.bfloat16, torch.float32, torch.float64
@@ -400,7 +400,7 @@ def test_threshold_depth_extremes_and_the_invalid_is_nan_contract(dtype, data):
     by design; valid depths are finite, within the ray's samples, and equal the float64
     reference of the rounded inputs up to the output rounding (2u relative). Before the fix,
     float16 t_start + t_end overflowed beyond 32752 m (depth inf or NaN on a valid ray)."""
-    from nerfbot.rendering import threshold_depth
+    from nerfbot.ops.rendering import threshold_depth
 
     rays = data.draw(ragged_rays(1e4 if dtype == F16 else 1e6))
     m = data.draw(st.sampled_from([1.0, 4.0]))
@@ -428,7 +428,7 @@ def test_threshold_depth_far_out(dtype):
     """Crossings at 4.75e4 m (interpolated) and 6e4 m (first sample), in range for every dtype:
     before the fix float16 midpoints overflowed (t_start + t_end > 65504) and the valid ray
     got a NaN depth. Tolerance: output rounding, 2u relative."""
-    from nerfbot.rendering import threshold_depth
+    from nerfbot.ops.rendering import threshold_depth
 
     rays = [[(0.5, 4.0e4, 4.5e4), (8.0, 4.5e4, 5.0e4)], [(INF, 6.0e4, 6.5e4)], [(0.0, 0.0, 1e4)]]
     sig, ts, te, ri = pack(rays, dtype)
@@ -951,7 +951,7 @@ def synthetic_dataset(root: Path, kind: str, scale: float = 1.0, size: int = 16,
     """A tiny nerfstudio dataset with a manifest ``bounds`` cube of edge ``scale`` (metres):
     ``black`` / ``white`` images from an orbit, ``inside`` (cameras at the centre of the
     bounds looking out at a uniform grey wall), ``noise`` (random images from an orbit)."""
-    from nerfbot.cameras import focal_from_fov
+    from nerfbot.ops.cameras import focal_from_fov
     from nerfbot.data import load_dataset
     from nerfbot.data.writers import open_writer
 
@@ -978,7 +978,7 @@ def synthetic_dataset(root: Path, kind: str, scale: float = 1.0, size: int = 16,
 def train_and_check(ds, out_dir, method="ngp", steps=12, lr=None, options=None):
     """Train, then assert: every parameter and float buffer finite, a test view renders finite
     rgb / depth / opacity. Returns (trainer, render)."""
-    from nerfbot.training import TrainConfig, Trainer
+    from nerfbot.train.trainer import TrainConfig, Trainer
 
     opts = options if options is not None else (TRAIN_NGP if method == "ngp" else TRAIN_NERF)
     trainer = Trainer(ds, out_dir, TrainConfig(method=method, max_steps=steps, lr=lr,
@@ -1037,7 +1037,8 @@ def test_diverging_training_gives_a_clear_error(tmp_path):
     non-finite parameters as the *last* step (simulated by corrupting one after it) must not be
     saved either: before the fix the run ended normally with a NaN checkpoint. Non-positive or
     non-finite learning rates are rejected up front."""
-    from nerfbot.training import CHECKPOINT, TrainConfig, Trainer
+    from nerfbot.train.checkpoints import CHECKPOINT
+    from nerfbot.train.trainer import TrainConfig, Trainer
 
     ds = synthetic_dataset(tmp_path / "ds", "noise")
     cfg = dict(method="ngp", progress=False, options=TRAIN_NGP)

@@ -7,9 +7,11 @@ import pytest
 import torch
 
 from nerfbot.data import load_dataset
-from nerfbot.evaluation import evaluate
-from nerfbot.metrics import psnr
-from nerfbot.training import CHECKPOINT, TrainConfig, Trainer, load_model
+from nerfbot.eval.evaluation import evaluate
+from nerfbot.ops.metrics import psnr
+from nerfbot.train.checkpoints import CHECKPOINT
+from nerfbot.train.runs import load_model
+from nerfbot.train.trainer import TrainConfig, Trainer
 
 pytestmark = pytest.mark.slow(55)  # rough single-core seconds (tests/conftest.py)
 
@@ -151,7 +153,7 @@ def test_budget_is_required_and_options_are_checked(tiny_capture, tmp_path):
 def test_warm_up_step_leaves_the_model_and_the_run_alone(tiny_capture, tmp_path, method):
     """The step that compiles kernels before the clock starts runs on a copy: parameters,
     gradients, the occupancy state and the run's random stream are as they were."""
-    from nerfbot.training import warm_up_step
+    from nerfbot.train.trainer import warm_up_step
 
     ds = load_dataset(tiny_capture[0])
     trainer = Trainer(ds, tmp_path / "run", TrainConfig(method=method, max_steps=1, progress=False))
@@ -258,7 +260,7 @@ def test_fields_that_grow_get_a_new_optimiser_and_reload_at_their_new_size(tiny_
 
 def _image_points(rays, cams, slot) -> np.ndarray:
     """(R, 2) image points (pixels) of rays of the cameras' frames ``slot`` (R,)."""
-    from nerfbot.cameras import opengl_to_opencv
+    from nerfbot.ops.cameras import opengl_to_opencv
 
     out = []
     for r in range(len(rays)):
@@ -275,7 +277,7 @@ def _image_points(rays, cams, slot) -> np.ndarray:
 def test_supersampled_training_rays_stratify_their_pixel(tiny_capture, s):
     """PixelBank.sample(n, g, s): n pixels, s x s rays each (pixel after pixel), one through a
     random point of each of the s x s cells of the pixel; s = 1 is the pixel centre."""
-    from nerfbot.training import PixelBank
+    from nerfbot.data.pixels import PixelBank
 
     ds = load_dataset(tiny_capture[0])
     bank = PixelBank(ds, ds.indices("train"))
@@ -301,8 +303,8 @@ def test_supersampled_loss_compares_the_pixel_mean_colour(tiny_capture, tmp_path
     """With S x S rays per pixel the photometric loss is the MSE of the pixels' mean colours
     (a pixel's colour is the mean over its area), not the mean of the rays' errors; the
     trainer's batches hold S^2 rays per pixel."""
-    from nerfbot.models import pixel_mean
-    from nerfbot.training import batch_loss
+    from nerfbot.models.base import pixel_mean
+    from nerfbot.train.trainer import batch_loss
 
     ds = load_dataset(tiny_capture[0])
     cfg = TrainConfig(method="ngp", max_steps=1, seed=0, progress=False,

@@ -19,17 +19,11 @@ import torch.nn.functional as F
 from numba.core.dispatcher import Dispatcher
 
 import nerfbot.kernels
-from nerfbot.background import FixedBackground
-from nerfbot.cameras import Rays
 from nerfbot.data import load_dataset
-from nerfbot.encodings import (FrequencyEncoding, HashEncoding, PlaneEncoding,
-                               _HashEncodeNumba, _PlaneEncodeNumba, hash_encode_reference,
-                               plane_encode_reference, spherical_harmonics,
-                               spherical_harmonics_reference)
-from nerfbot.evaluation import evaluate
-from nerfbot.fields.fastnerf_cache import FastNeRFCacheConfig, FastNeRFCacheModel
-from nerfbot.fields.kilonerf import (KiloNeRFConfig, KiloNeRFField, KiloNeRFFieldConfig,
-                                     KiloNeRFModel, Layout, chunk_layout_reference)
+from nerfbot.eval.evaluation import evaluate
+from nerfbot.fields.background import FixedBackground
+from nerfbot.fields.kilonerf import (KiloNeRFField, KiloNeRFFieldConfig, Layout,
+                                     chunk_layout_reference)
 from nerfbot.fields.tensorf import VMGrid, _VMNumba, vm_reference
 from nerfbot.kernels import ENV_VAR, boxes, densegrid, kernel_mode, use_kernels
 from nerfbot.kernels import kilonerf as kilonerf_kernels
@@ -37,15 +31,22 @@ from nerfbot.kernels import octahedral as octahedral_kernels
 from nerfbot.kernels import octree as octree_kernels
 from nerfbot.kernels.fastnerf_cache import BRICK
 from nerfbot.kernels.sh import sh_encode
-from nerfbot.models import OccupancyModel, OccupancyModelConfig
-from nerfbot.octahedral import octahedral_lookup
-from nerfbot.plenoctree import (PlenOctreeConfig, PlenOctreeModel, build_octree,
-                                octree_lookup_reference, walk_segments, walk_segments_reference)
-from nerfbot.rendering import (_SegmentScan, ray_starts, segment_exclusive_cumsum,
-                               segment_exclusive_cumsum_reference)
-from nerfbot.sampling import (OccupancyGrid, march_kernels, march_reference, ray_aabb,
-                              ray_aabb_reference)
-from nerfbot.training import TrainConfig, Trainer
+from nerfbot.models.fastnerf_cache import FastNeRFCacheConfig, FastNeRFCacheModel
+from nerfbot.models.kilonerf import KiloNeRFConfig, KiloNeRFModel
+from nerfbot.models.occupancy import OccupancyModel, OccupancyModelConfig
+from nerfbot.models.plenoctree import (PlenOctreeConfig, PlenOctreeModel, build_octree,
+                                       octree_lookup_reference, walk_segments,
+                                       walk_segments_reference)
+from nerfbot.ops.cameras import Rays
+from nerfbot.ops.encodings import (FrequencyEncoding, HashEncoding, PlaneEncoding, _HashEncodeNumba,
+                                   _PlaneEncodeNumba, hash_encode_reference, plane_encode_reference,
+                                   spherical_harmonics, spherical_harmonics_reference)
+from nerfbot.ops.octahedral import octahedral_lookup
+from nerfbot.ops.rendering import (_SegmentScan, ray_starts, segment_exclusive_cumsum,
+                                   segment_exclusive_cumsum_reference)
+from nerfbot.ops.sampling import (OccupancyGrid, march_kernels, march_reference, ray_aabb,
+                                  ray_aabb_reference)
+from nerfbot.train.trainer import TrainConfig, Trainer
 
 AABB = [[-0.6, -0.4, 0.0], [0.6, 0.4, 0.9]]
 
@@ -283,7 +284,7 @@ def _stencil_twin(u, links):
     return densegrid.stencil_reference(torch.nan_to_num(u, nan=0.0).clamp(0.0, 1.0), links)
 
 
-def _gather(n: int, channels: int):
+def gather_rows(n: int, channels: int):
     def make(g):
         links = _links((7, 5, 6), g, 0.4)
         rows, weights, _ = densegrid.stencil(torch.rand(n, 3, generator=g), links)
@@ -553,9 +554,9 @@ TABLE = [
     Twin("grid_stencil/far_outside_and_nan", _stencil(300, far=True), _stencil_kernel,
          _stencil_twin, atol=1e-6),
     Twin("grid_stencil/all_pruned", _stencil(100, keep=0.0), _stencil_kernel, _stencil_twin),
-    Twin("grid_gather", _gather(3000, 28), _gather_kernel, _gather_twin, atol=5e-6, rtol=1e-5,
+    Twin("grid_gather", gather_rows(3000, 28), _gather_kernel, _gather_twin, atol=5e-6, rtol=1e-5,
          grads=("table",), grad_atol=5e-5, grad_rtol=1e-5),
-    Twin("grid_gather/empty", _gather(0, 3), _gather_kernel, _gather_twin, grads=("table",)),
+    Twin("grid_gather/empty", gather_rows(0, 3), _gather_kernel, _gather_twin, grads=("table",)),
     Twin("sh_color", _sh_color(2000, 2), _sh_color_kernel, _sh_color_twin, atol=1e-6,
          grads=("coeffs",), grad_atol=1e-6),
     Twin("sh_color/degree_0", _sh_color(200, 0), _sh_color_kernel, _sh_color_twin, atol=1e-6,
@@ -763,7 +764,7 @@ def test_training_with_the_twins_forced_matches_the_kernels(method, tiny_capture
     monkeypatch.setenv(ENV_VAR, "torch")
     monkeypatch.setattr(nerfbot.kernels, "kernel_mode", counted_mode)
     forbidden = _forbid_kernels(monkeypatch)
-    assert {"nerfbot.kernels.hashgrid.hash_forward", "nerfbot.encodings.sh_encode",
+    assert {"nerfbot.kernels.hashgrid.hash_forward", "nerfbot.ops.encodings.sh_encode",
             "nerfbot.kernels.marching._march", "nerfbot.kernels.scan.segment_exclusive_cumsum",
             "nerfbot.kernels.densegrid.grid_gather", "nerfbot.kernels.vm.vm_forward",
             "nerfbot.kernels.kilonerf.chunk_layout"} <= forbidden

@@ -47,7 +47,7 @@ MARKER = "PAYLOAD_RAN"
 # -- the base fixtures -----------------------------------------------------------------------
 def nerfbot(args: list, cwd: Path, timeout: float = 900) -> subprocess.CompletedProcess:
     env = dict(os.environ, PYTHONWARNINGS="ignore")
-    return subprocess.run([sys.executable, "-m", "nerfbot.cli", *map(str, args)], cwd=cwd,
+    return subprocess.run([sys.executable, "-m", "nerfbot.app.cli", *map(str, args)], cwd=cwd,
                           env=env, capture_output=True, text=True, timeout=timeout)
 
 

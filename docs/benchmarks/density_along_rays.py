@@ -17,7 +17,7 @@ import torch
 
 import sims  # noqa: F401  (headless GL before mujoco)
 from nerfbot.data import load_dataset
-from nerfbot.training import load_model
+from nerfbot.train.runs import load_model
 
 run, data, name = sys.argv[1], sys.argv[2], sys.argv[3]
 model, _ = load_model(run)

@@ -14,12 +14,12 @@ from pathlib import Path
 import numpy as np
 
 import sims  # noqa: F401  (MUJOCO_GL before mujoco)
-from nerfbot.conditioning import dataset_conditioning, frame_conditions
 from nerfbot.data import load_dataset
-from nerfbot.export import labelled_row, save_image
-from nerfbot.metrics import psnr
-from nerfbot.query import render_image
-from nerfbot.training import load_model
+from nerfbot.data.conditioning import dataset_conditioning, frame_conditions
+from nerfbot.ops.metrics import psnr
+from nerfbot.query.export import labelled_row, save_image
+from nerfbot.query.render import render_image
+from nerfbot.train.runs import load_model
 
 METHODS = {"mono": ("dnerf", "tnerf", "ngp"), "multi": ("dnerf", "tnerf", "ngp"),
            "art": ("articulated", "tnerf", "ngp")}

@@ -10,8 +10,8 @@ import numpy as np
 
 import sims  # noqa: F401  (headless GL before mujoco)
 from nerfbot.data import load_dataset
-from nerfbot.query import render_image
-from nerfbot.training import load_model
+from nerfbot.query.render import render_image
+from nerfbot.train.runs import load_model
 
 run, data = sys.argv[1], sys.argv[2]
 split = sys.argv[3] if len(sys.argv) > 3 else "test"

@@ -9,13 +9,15 @@ surface placed too far, below 1 for a veil).
 usage: python docs/benchmarks/object_depth_errors.py RUN DATA
 """
 import sys
-import numpy as np
+
 import cv2
+import numpy as np
+
 import sims  # noqa: F401  (headless GL before mujoco)
 from nerfbot.data import load_dataset
-from nerfbot.training import load_model
-from nerfbot.query import render_image
-from nerfbot.evaluation import depth_valid_mask
+from nerfbot.data.pixels import depth_valid_mask
+from nerfbot.query.render import render_image
+from nerfbot.train.runs import load_model
 
 run, data = sys.argv[1], sys.argv[2]
 model, meta = load_model(run)

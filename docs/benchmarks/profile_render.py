@@ -5,8 +5,8 @@ import pstats
 import sys
 
 from nerfbot.data import load_dataset
-from nerfbot.query import render_image
-from nerfbot.training import load_model
+from nerfbot.query.render import render_image
+from nerfbot.train.runs import load_model
 
 if len(sys.argv) != 3:
     sys.exit(__doc__)

@@ -15,9 +15,9 @@ import time
 import numpy as np
 
 from nerfbot.data import load_dataset
-from nerfbot.evaluation import evaluate
-from nerfbot.query import render_image
-from nerfbot.training import load_model
+from nerfbot.eval.evaluation import evaluate
+from nerfbot.query.render import render_image
+from nerfbot.train.runs import load_model
 
 ROUNDS = 5
 if len(sys.argv) != 5:

@@ -16,8 +16,8 @@ import time
 import numpy as np
 
 from nerfbot.data import load_dataset
-from nerfbot.query import render_image
-from nerfbot.training import load_model
+from nerfbot.query.render import render_image
+from nerfbot.train.runs import load_model
 
 ROUNDS = 5
 args = sys.argv[2:]

@@ -18,7 +18,7 @@ import tempfile
 import time
 
 from nerfbot.data import load_dataset
-from nerfbot.training import TrainConfig, Trainer
+from nerfbot.train.trainer import TrainConfig, Trainer
 
 SETTLE_STEPS, BLOCK, ROUNDS = 40, 12, 6
 

@@ -8,8 +8,8 @@ from typing import Optional
 
 import numpy as np
 
-from nerfbot.cameras import Cameras
 from nerfbot.data.errors import DatasetError
+from nerfbot.ops.cameras import Cameras
 
 
 @dataclass

@@ -4,7 +4,7 @@ Focal length, in priority order per axis: ``fl_x`` (pixels), ``x_fov`` (degrees,
 ``camera_angle_x`` (radians, Blender / instant-ngp); likewise ``fl_y``, ``y_fov``,
 ``camera_angle_y``. A missing axis takes the other's focal (square pixels). ``cx``, ``cy``
 default to the image centre ``w / 2``, ``h / 2`` (pixel centres at +0.5, as in nerfstudio and
-:mod:`nerfbot.cameras`).
+:mod:`nerfbot.ops.cameras`).
 
 Distortion models: ``OPENCV`` (also ``SIMPLE_RADIAL``, ``RADIAL``) with k1, k2, p1, p2 and
 optional k3; ``OPENCV_FISHEYE`` (or instant-ngp ``is_fisheye``) with k1..k4; ``PINHOLE`` /
@@ -22,9 +22,9 @@ import logging
 import math
 from dataclasses import dataclass
 
-from nerfbot.cameras import focal_from_fov
 from nerfbot.data.errors import DatasetError
 from nerfbot.data.spec import number
+from nerfbot.ops.cameras import focal_from_fov
 
 log = logging.getLogger(__name__)
 

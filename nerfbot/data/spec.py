@@ -16,8 +16,8 @@ from typing import Any, Optional
 
 import numpy as np
 
-from nerfbot.cameras import check_pose
 from nerfbot.data.errors import DatasetError
+from nerfbot.ops.cameras import check_pose
 
 #: Intrinsics / distortion keys that may appear at the top level or per frame (per frame wins).
 CAMERA_KEYS = (

@@ -37,7 +37,7 @@ from typing import Optional
 import cv2
 import numpy as np
 
-from nerfbot.cameras import check_pose
+from nerfbot.ops.cameras import check_pose
 
 FORMATS = ("nerfstudio", "blender")
 

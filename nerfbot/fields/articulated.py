@@ -22,10 +22,10 @@ from typing import Optional
 import numpy as np
 import torch
 
-from nerfbot.conditioning import Conditioning
+from nerfbot.data.conditioning import Conditioning
 from nerfbot.fields.base import Field
 from nerfbot.fields.ngp import NGPField, NGPFieldConfig
-from nerfbot.kinematics import JointChain
+from nerfbot.ops.kinematics import JointChain
 
 
 @dataclass

@@ -22,10 +22,10 @@ from typing import Optional
 import torch
 from torch import nn
 
-from nerfbot.conditioning import Conditioning
-from nerfbot.encodings import FrequencyEncoding, PlaneEncoding
+from nerfbot.data.conditioning import Conditioning
 from nerfbot.fields.base import Field, mlp
 from nerfbot.fields.ngp import NGPField, NGPFieldConfig
+from nerfbot.ops.encodings import FrequencyEncoding, PlaneEncoding
 
 
 @dataclass

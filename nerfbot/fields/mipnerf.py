@@ -1,14 +1,12 @@
-"""mip-NeRF (Barron et al. 2021): cones instead of rays, integrated positional encoding.
+"""mip-NeRF's field (Barron et al. 2021): cones instead of rays, integrated positional encoding.
 
 Each interval [t0, t1] of a ray is the conical frustum cut from the cone through the ray's
-pixel (radius ``t * radii`` at distance t, see :class:`~nerfbot.cameras.Rays`). The frustum is
+pixel (radius ``t * radii`` at distance t, see :class:`~nerfbot.ops.cameras.Rays`). The frustum is
 replaced by a Gaussian of the same mean and (diagonal) covariance, and the field sees the
 *expected* positional encoding of a point drawn from it (the IPE): every sin / cos feature of
 frequency a is damped by ``exp(-a^2 var / 2)``, so features finer than the footprint fade out
-and an image rendered at a lower resolution (larger pixels, wider cones) is anti-aliased.
-
-One MLP serves both passes: coarse stratified intervals, then fine intervals drawn from the
-coarse weights blurred by a 2-tap max and a 2-tap mean plus a constant padding.
+and an image rendered at a lower resolution (larger pixels, wider cones) is anti-aliased. The
+renderer is :class:`nerfbot.models.mipnerf.MipNeRFModel`.
 """
 
 from __future__ import annotations
@@ -21,19 +19,14 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from nerfbot.cameras import Rays
-from nerfbot.encodings import FrequencyEncoding
 from nerfbot.fields.base import BoxNormalizer, Field
-from nerfbot.models import Model, pixel_mean
-from nerfbot.rendering import RenderOutput, composite
-from nerfbot.sampling import pdf_samples, ray_aabb, stratified_samples
+from nerfbot.ops.encodings import FrequencyEncoding
+
 
 #: Samples per field query when rendering without gradients (bounds the activation memory of
 #: a 256-wide MLP to ~0.3 GB per layer whatever the number of rays).
 EVAL_QUERY_CHUNK = 1 << 18
 
-
-# -- Gaussians of conical frustums ------------------------------------------------------------
 
 def conical_frustum_gaussian(t0: torch.Tensor, t1: torch.Tensor, radii: torch.Tensor
                              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -82,7 +75,7 @@ def integrated_pos_enc(mean: torch.Tensor, var: Optional[torch.Tensor], n_freqs:
                        ) -> torch.Tensor:
     """E[gamma(x)] for x ~ N(mean, diag(var)): (N, D) -> (N, D (1 + 2 n_freqs)).
 
-    gamma is nerfbot's positional encoding (:class:`~nerfbot.encodings.FrequencyEncoding`:
+    gamma is nerfbot's positional encoding (:class:`~nerfbot.ops.encodings.FrequencyEncoding`:
     ``[x, sin(a_k x), cos(a_k x)]`` with ``a_k = pi 2^k``, in that layout), and
     ``E[sin(a x)] = sin(a mean) exp(-a^2 var / 2)`` (likewise cos). ``var`` None (or 0) gives
     gamma(mean) exactly.
@@ -95,8 +88,6 @@ def integrated_pos_enc(mean: torch.Tensor, var: Optional[torch.Tensor], n_freqs:
         sin, cos = sin * damp, cos * damp
     return torch.cat([mean, sin, cos], dim=-1)
 
-
-# -- the field --------------------------------------------------------------------------------
 
 @dataclass
 class MipNeRFFieldConfig:
@@ -178,108 +169,3 @@ class MipNeRFField(Field):
     def color(self, feat: torch.Tensor, d: torch.Tensor, cond: Optional[torch.Tensor] = None):
         h = F.relu(self.branch(torch.cat([feat, self.dir_enc(d)], -1)))
         return torch.sigmoid(self.rgb_head(h))
-
-
-# -- the model --------------------------------------------------------------------------------
-
-@dataclass
-class MipNeRFModelConfig:
-    coarse_samples: int = 128
-    """Stratified intervals per ray of the coarse pass."""
-    fine_samples: int = 128
-    """Intervals per ray of the fine pass, all drawn from the blurred coarse weights (they
-    replace the coarse ones: 128 + 128 field queries per ray, as nerf's 64 + (64 + 128))."""
-    rays_per_batch: int = 1024
-    """Rays per training batch."""
-    coarse_loss_weight: float = 0.1
-    """Weight of the coarse pass's MSE in the loss (the fine pass has weight 1)."""
-    pdf_padding: float = 0.01
-    """Added to every blurred coarse weight before fine sampling (mip-NeRF's resample padding):
-    keeps some fine samples everywhere along the ray."""
-
-    def validate(self) -> None:
-        for name in ("coarse_samples", "fine_samples", "rays_per_batch"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"mipnerf option {name} must be a positive integer, got {value!r}")
-        for name in ("coarse_loss_weight", "pdf_padding"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not (isinstance(value, (int, float))
-                                               and 0.0 <= value < math.inf):
-                raise ValueError(f"mipnerf option {name} must be finite and >= 0, got {value!r}")
-
-
-def blurred_weights(weights: torch.Tensor, padding: float) -> torch.Tensor:
-    """mip-NeRF's resampling pdf from coarse weights (R, S): max over neighbouring pairs
-    (S + 1 values, ends replicated), mean over neighbouring pairs again (S values), plus
-    ``padding``. Widens every peak by about one interval on each side."""
-    padded = torch.cat([weights[:, :1], weights, weights[:, -1:]], -1)
-    pooled = torch.maximum(padded[:, :-1], padded[:, 1:])
-    return 0.5 * (pooled[:, :-1] + pooled[:, 1:]) + padding
-
-
-class MipNeRFModel(Model):
-    """Cone tracing through one :class:`MipNeRFField`: coarse, then fine intervals."""
-
-    def __init__(self, field: MipNeRFField, background: nn.Module, aabb,
-                 config: MipNeRFModelConfig | None = None):
-        super().__init__()
-        self.config = config or MipNeRFModelConfig()
-        self.config.validate()
-        self.field, self.background = field, background
-        self.register_buffer("aabb", torch.as_tensor(aabb, dtype=torch.float32).clone())
-
-    def _query(self, mean, var, d, cond):
-        """Field density and colour of (M,) Gaussians; chunked when no gradient is recorded."""
-        if torch.is_grad_enabled() or mean.shape[0] <= EVAL_QUERY_CHUNK:
-            sigma, feat = self.field.density_gaussian(mean, var, cond)
-            return sigma, self.field.color(feat, d, cond)
-        parts = [self._query(mean[i:i + EVAL_QUERY_CHUNK], var[i:i + EVAL_QUERY_CHUNK],
-                             d[i:i + EVAL_QUERY_CHUNK],
-                             None if cond is None else cond[i:i + EVAL_QUERY_CHUNK])
-                 for i in range(0, mean.shape[0], EVAL_QUERY_CHUNK)]
-        return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
-
-    def _render_edges(self, rays: Rays, radii, edges, t_far, bg, cond,
-                      with_median: bool) -> RenderOutput:
-        """Composite the frustums between ``edges`` (R, S + 1) of every ray."""
-        n, s = edges.shape[0], edges.shape[1] - 1
-        ray_idx = torch.arange(n, device=edges.device).repeat_interleave(s)
-        t0, t1 = edges[:, :-1], edges[:, 1:]
-        t_mean, t_var, r_var = conical_frustum_gaussian(t0, t1, radii[:, None])
-        mean, var = lift_gaussian(rays.origins[:, None], rays.directions[:, None], t_mean,
-                                  t_var, r_var)
-        d = rays.directions[ray_idx]
-        c = None if cond is None else cond[ray_idx]
-        sigma, rgb = self._query(mean.reshape(-1, 3), var.reshape(-1, 3), d, c)
-        return composite(sigma, rgb, t0.reshape(-1), t1.reshape(-1), ray_idx, n, bg, t_far,
-                         rays.z_per_t, with_median=with_median)
-
-    def _render_both(self, rays: Rays, generator=None, cond=None):
-        cfg = self.config
-        t_near, t_far, _ = ray_aabb(rays.origins, rays.directions, self.aabb)
-        # rays not made from pixels have no footprint: they are traced as thin rays
-        radii = rays.radii if rays.radii is not None else torch.zeros_like(t_near)
-        bg = self.background(rays.directions)
-        edges_c = stratified_samples(t_near, t_far, cfg.coarse_samples, generator, self.training)
-        coarse = self._render_edges(rays, radii, edges_c, t_far, bg, cond, False)
-        w = blurred_weights(coarse.weights.detach().reshape(len(rays), cfg.coarse_samples),
-                            cfg.pdf_padding)
-        edges_f = pdf_samples(edges_c, w, cfg.fine_samples + 1, generator, self.training)
-        edges_f = torch.sort(edges_f, -1).values
-        fine = self._render_edges(rays, radii, edges_f, t_far, bg, cond, not self.training)
-        return coarse, fine
-
-    def render_rays(self, rays: Rays, generator=None, cond=None) -> RenderOutput:
-        return self._render_both(rays, generator, cond)[1]
-
-    def loss(self, rays, target_rgb, generator=None, cond=None, rays_per_pixel=1):
-        coarse, fine = self._render_both(rays, generator, cond)
-        loss = F.mse_loss(pixel_mean(fine.rgb, rays_per_pixel), target_rgb)
-        if self.config.coarse_loss_weight > 0:
-            loss = loss + self.config.coarse_loss_weight * F.mse_loss(
-                pixel_mean(coarse.rgb, rays_per_pixel), target_rgb)
-        return loss, fine
-
-    def rays_for_next_batch(self, last_samples: Optional[int], n_rays: int) -> int:
-        return self.config.rays_per_batch

@@ -2,7 +2,7 @@
 colour coefficients, no direction input; the view direction enters only through the SH basis.
 
 Because nothing but the SH basis depends on the direction, the field's outputs at a point can be
-stored once (in an octree leaf, :mod:`nerfbot.plenoctree`) and rendered for any view.
+stored once (in an octree leaf, :mod:`nerfbot.models.plenoctree`) and rendered for any view.
 """
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ from typing import Optional
 
 import torch
 
-from nerfbot.encodings import HashGridConfig, spherical_harmonics
 from nerfbot.fields.base import BoxNormalizer, Field, mlp, trunc_exp
+from nerfbot.ops.encodings import HashGridConfig, spherical_harmonics
 
 #: The constant degree-0 SH basis function Y_00 = 1 / (2 sqrt(pi)).
 SH_C0 = 0.5 / math.sqrt(math.pi)

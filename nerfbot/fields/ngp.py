@@ -8,8 +8,8 @@ from typing import Optional
 
 import torch
 
-from nerfbot.encodings import HashGridConfig, SHEncoding
 from nerfbot.fields.base import BoxNormalizer, Field, mlp, trunc_exp
+from nerfbot.ops.encodings import HashGridConfig, SHEncoding
 
 
 @dataclass

@@ -13,7 +13,7 @@ scene bounds and are resampled (bilinear / linear interpolation of the parameter
 ``final_res`` at fractions ``upsample_at`` of the budget, as the paper does; each upsampling
 asks the trainer for a new optimiser. Resolutions live only in the parameters' shapes, so a
 checkpoint of an upsampled field reloads into a freshly built one
-(:func:`nerfbot.models.resize_like_state_dict`).
+(:func:`nerfbot.models.base.resize_like_state_dict`).
 
 The grids cover the scene bounds per axis (not the enclosing cube), with cells of about the same
 size along every axis.
@@ -30,11 +30,11 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from nerfbot.encodings import FrequencyEncoding, spherical_harmonics
 from nerfbot.fields.base import Field, mlp
 from nerfbot.kernels import use_kernels
 from nerfbot.kernels import vm as _vk
 from nerfbot.kernels.vm import VM_AXES
+from nerfbot.ops.encodings import FrequencyEncoding, spherical_harmonics
 
 
 def _unit_box(x: torch.Tensor) -> torch.Tensor:

@@ -14,10 +14,10 @@ from typing import Optional
 
 import torch
 
-from nerfbot.conditioning import Conditioning
-from nerfbot.encodings import FrequencyEncoding
+from nerfbot.data.conditioning import Conditioning
 from nerfbot.fields.base import mlp, trunc_exp
 from nerfbot.fields.ngp import NGPField, NGPFieldConfig
+from nerfbot.ops.encodings import FrequencyEncoding
 
 
 @dataclass
@@ -31,7 +31,7 @@ class TNeRFFieldConfig:
 class TNeRFField(NGPField):
     """sigma, rgb = NGP(hash(x) ++ gamma(c)): the condition is just another input.
 
-    ``cond`` (N, C) in scene units (see :class:`~nerfbot.conditioning.Conditioning`); None means
+    ``cond`` (N, C) in scene units (see :class:`~nerfbot.data.conditioning.Conditioning`); None means
     the low end of every range (t = 0, joints at their lower limits).
     """
 

@@ -1,5 +1,5 @@
 """Numba ray / box intersection, float32 operation by operation as the torch reference
-:func:`nerfbot.sampling.ray_aabb` (tests assert bitwise agreement), so fused renderers and the
+:func:`nerfbot.ops.sampling.ray_aabb` (tests assert bitwise agreement), so fused renderers and the
 torch paths start and end rays at the same distances."""
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ def ray_box(origins, dirs, r, box):
 @njit(parallel=True, cache=True, nogil=True)
 def ray_aabb(origins, dirs, box, near, t_near, t_far, hit):
     """All rays: origins, dirs (R, 3) float32, box (2, 3) float32, near float32 -> t_near,
-    t_far (R,) float32 and hit (R,) bool, by :func:`nerfbot.sampling.ray_aabb`'s rules."""
+    t_far (R,) float32 and hit (R,) bool, by :func:`nerfbot.ops.sampling.ray_aabb`'s rules."""
     for r in prange(origins.shape[0]):
         t0, t1 = np.float32(-np.inf), np.float32(np.inf)
         for a in range(3):

@@ -34,9 +34,12 @@ come from one worker in point order, so the sums are deterministic.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import torch
 from numba import njit, prange
+
+from nerfbot.kernels.sh import spherical_harmonics_reference
 
 
 @njit(parallel=True, fastmath=True, cache=True, nogil=True)
@@ -135,7 +138,7 @@ def grid_scatter(grad_out, rows, weights, grad_table, n_threads):
                         grad_table[r, f] += w * grad_out[n, f]
 
 
-# Real SH constants, the basis of nerfbot.encodings.spherical_harmonics (degrees 0..2; the
+# Real SH constants, the basis of nerfbot.ops.encodings.spherical_harmonics (degrees 0..2; the
 # tests compare the two)
 _Y0 = np.float32(0.28209479177387814)
 _Y1 = np.float32(0.4886025119029199)
@@ -293,8 +296,6 @@ def gather_reference(table: torch.Tensor, rows: torch.Tensor, weights: torch.Ten
 # ----------------------------------------------------------------------- torch entry points
 
 def _n_workers() -> int:
-    import numba
-
     return numba.get_num_threads()
 
 
@@ -392,11 +393,9 @@ def tv_reference(table: torch.Tensor, pairs: torch.Tensor) -> torch.Tensor:
 
 def sh_color_reference(coeffs: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
     """Plain-torch twin of :func:`sh_color_forward` (any device and dtype, differentiable)."""
-    from nerfbot.encodings import spherical_harmonics
-
     k = coeffs.shape[1] // 3
     degree = {1: 0, 4: 1, 9: 2}[k]
-    basis = spherical_harmonics(d, degree)
+    basis = spherical_harmonics_reference(d, degree)
     return torch.sigmoid((coeffs.reshape(-1, 3, k) * basis[:, None, :]).sum(-1))
 
 

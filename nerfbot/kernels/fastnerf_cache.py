@@ -1,6 +1,6 @@
 """Numba CPU kernels of the FastNeRF cache: baking helpers and the fused renderer.
 
-The cache (see :mod:`nerfbot.fields.fastnerf_cache`) is a grid of NC = NB * B cells per axis over
+The cache (see :mod:`nerfbot.models.fastnerf_cache`) is a grid of NC = NB * B cells per axis over
 the scene cube (vertex spacing h = cube_size / NC), stored sparsely in bricks of B^3 cells:
 
 * ``bricks`` (NB, NB, NB) int32: the id of brick (I, J, K), or -1 where nothing is stored;
@@ -17,7 +17,7 @@ the scene cube (vertex spacing h = cube_size / NC), stored sparsely in bricks of
 The renderer uses B = :data:`BRICK`. A brick holds all 8 corners of each of its cells, so a
 trilinear lookup reads one brick, and consecutive samples along a ray mostly the same one. Points in bricks that are not stored have
 zero density. The plain-torch twin of the renderer is
-:meth:`nerfbot.fields.fastnerf_cache.FastNeRFCacheModel.render_reference`; tests assert they agree.
+:meth:`nerfbot.models.fastnerf_cache.FastNeRFCacheModel.render_reference`; tests assert they agree.
 """
 
 from __future__ import annotations
@@ -119,7 +119,7 @@ def _box_exit(rx, ry, rz, ivx, ivy, ivz, lx, ly, lz, n, size):
 
 @njit(inline="always")
 def _box_clip(ox, oy, oz, dx, dy, dz, aabb):
-    """(t_near, t_far) of a ray in the box ``aabb`` (2, 3), as :func:`nerfbot.sampling.ray_aabb`
+    """(t_near, t_far) of a ray in the box ``aabb`` (2, 3), as :func:`nerfbot.ops.sampling.ray_aabb`
     (near 0; a ray that misses gets 0, 0)."""
     lo = -1e30
     hi = 1e30

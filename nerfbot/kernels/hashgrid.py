@@ -1,6 +1,6 @@
 """Numba CPU kernels of the multiresolution hash encoding (Instant-NGP, Mueller et al. 2022).
 
-The plain-torch twin lives in :func:`nerfbot.encodings.hash_encode_reference`; tests assert the
+The plain-torch twin lives in :func:`nerfbot.ops.encodings.hash_encode_reference`; tests assert the
 two agree. Both use the same grid arithmetic:
 
 * level ``l`` has ``res[l]`` cells per axis and ``res[l] + 1`` vertices per axis;

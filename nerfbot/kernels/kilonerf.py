@@ -9,9 +9,9 @@ Sample ``i`` lands on padded row ``pos[i] = first_chunk[k] * C + rank_k(i)``; pa
 belong to no sample. Each layer of all networks is then one batched matmul over the chunks.
 
 Plain-torch twins: :func:`nerfbot.fields.kilonerf.chunk_layout_reference` (layout),
-:class:`nerfbot.encodings.FrequencyEncoding` (:func:`encode_rows`),
+:class:`nerfbot.ops.encodings.FrequencyEncoding` (:func:`encode_rows`),
 :meth:`nerfbot.fields.kilonerf.KiloNeRFField.slots` (:func:`sample_cells`) and
-:func:`nerfbot.rendering.composite` (:func:`composite_density`); tests assert they agree.
+:func:`nerfbot.ops.rendering.composite` (:func:`composite_density`); tests assert they agree.
 """
 
 from __future__ import annotations
@@ -88,7 +88,7 @@ def chunk_layout(slots, n_nets, chunk):
 def encode_rows(values, sin_pi, cos_pi, pos, n_freqs, out, col):
     """Write the frequency encoding of ``values[i]`` into row ``pos[i]`` of ``out``.
 
-    The encoding is :class:`nerfbot.encodings.FrequencyEncoding`'s: ``[v, sin(2^k pi v) for k,
+    The encoding is :class:`nerfbot.ops.encodings.FrequencyEncoding`'s: ``[v, sin(2^k pi v) for k,
     cos(2^k pi v) for k]``, frequency-major and coordinate-minor. sin and cos of 2^k pi v come
     from those of pi v (computed by the caller, vectorised, in float64) by the double-angle
     formulas in float64: each doubling at most doubles the error, and 2^10 x 1e-16 stays far
@@ -170,7 +170,7 @@ def composite_density(starts, counts, t_starts, t_ends, pos, raw, density_bias, 
     drops below ``early_stop`` the remaining samples get weight 0 (their colour is never
     needed). Depth is the weighted mean midpoint, median the first midpoint where the
     accumulated weight reaches half the opacity; both are ``far`` for rays with opacity
-    <= 1e-6 (:data:`nerfbot.rendering.EMPTY_OPACITY`).
+    <= 1e-6 (:data:`nerfbot.ops.rendering.EMPTY_OPACITY`).
 
     Args:
         starts, counts: (R,) int64 packed range of each ray; t_starts, t_ends: (M,) float32.
@@ -318,7 +318,7 @@ def _dense(x, n_in, w, b, k, row0, out):
 @njit(inline="always")
 def _frequency_encode(x0, x1, x2, n_freqs, out):
     """NeRF's encoding of a float32 3-vector into ``out`` (3 (1 + 2 F),), in the layout of
-    :class:`nerfbot.encodings.FrequencyEncoding`: [x, sin(2^k pi x) (k-major), cos(2^k pi x)];
+    :class:`nerfbot.ops.encodings.FrequencyEncoding`: [x, sin(2^k pi x) (k-major), cos(2^k pi x)];
     as the batched renderer computes it: sin and cos of the float32 angle pi x, the octaves by
     the double-angle recurrence in float64 (:func:`encode_padded`)."""
     pi32 = np.float32(np.pi)

@@ -4,7 +4,7 @@ A ray advances from ``t_begin`` in steps ``dt(t) = clamp(t * cone, dt_min, dt_ma
 interval [t, t + dt] becomes a sample when the grid cell holding its midpoint is occupied. Empty
 cells are crossed without emitting anything, so compute goes only where the scene is.
 
-The plain-torch twin is :func:`nerfbot.sampling.march_reference`; tests assert they agree.
+The plain-torch twin is :func:`nerfbot.ops.sampling.march_reference`; tests assert they agree.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Numba lookups on octahedral direction maps: tables of values at the vertices of a grid over
-the octahedral square (see :func:`nerfbot.octahedral.octahedral_encode`), read with bilinear
+the octahedral square (see :func:`nerfbot.ops.octahedral.octahedral_encode`), read with bilinear
 interpolation. The FastNeRF cache stores its direction network this way, and the baked renderers
-their background (:class:`nerfbot.background.BakedBackground`)."""
+their background (:class:`nerfbot.fields.background.BakedBackground`)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from numba import njit, prange
 @njit(inline="always")
 def octahedral(dx, dy, dz):
     """Unit direction -> octahedral coordinates (u, v) in [-1, 1]^2, as
-    :func:`nerfbot.octahedral.octahedral_encode`."""
+    :func:`nerfbot.ops.octahedral.octahedral_encode`."""
     inv = 1.0 / max(abs(dx) + abs(dy) + abs(dz), 1e-30)
     px, py, pz = dx * inv, dy * inv, dz * inv
     if pz >= 0:

@@ -1,6 +1,6 @@
 """Numba CPU kernels of the PlenOctree renderer: point lookup, ray walking, fused rendering.
 
-Octree layout (flat arrays, built by :func:`nerfbot.plenoctree.build_octree`):
+Octree layout (flat arrays, built by :func:`nerfbot.models.plenoctree.build_octree`):
 
 * ``child``: (nodes, 8) int32. Node 0 is the root and covers the cube
   ``[cube_min, cube_min + cube_size]^3``; each node splits its cell in 2 x 2 x 2. The child in
@@ -15,9 +15,9 @@ beyond it (``t + eps``) is found by descending from the root, and the ray jumps 
 leaves that cell. Empty cells are skipped whole, however large; a leaf contributes one segment
 with its constant density and colour (PlenOctrees' piecewise-constant model).
 
-The plain-torch twins are :func:`nerfbot.plenoctree.octree_lookup_reference` and
-:func:`nerfbot.plenoctree.walk_segments_reference`; the fused renderer's twin is the
-differentiable path (segments + :func:`nerfbot.rendering.composite`). Tests assert they agree.
+The plain-torch twins are :func:`nerfbot.models.plenoctree.octree_lookup_reference` and
+:func:`nerfbot.models.plenoctree.walk_segments_reference`; the fused renderer's twin is the
+differentiable path (segments + :func:`nerfbot.ops.rendering.composite`). Tests assert they agree.
 """
 
 from __future__ import annotations
@@ -255,7 +255,7 @@ def octree_render(origins, dirs, box, child, leaf_data, leaf_sigma, gmin, gsize,
             read: they take the weight-averaged colour of the ray's other segments (0: every
             segment of positive weight is shaded).
         box: (2, 3) float32 scene bounds: rays are walked where they are inside (t_near and
-            t_far as :func:`nerfbot.sampling.ray_aabb` computes them).
+            t_far as :func:`nerfbot.ops.sampling.ray_aabb` computes them).
         leaf_data: (leaves, 1 + 3 n_sh) float32 (see the module docstring); leaf_sigma: (leaves,)
             float32, its first column.
         background: (R, 3) float32 colour behind each ray.
@@ -269,7 +269,7 @@ def octree_render(origins, dirs, box, child, leaf_data, leaf_sigma, gmin, gsize,
         s_ts, s_te, s_sigma, s_w: float32 scratch: each segment's start, end, density, weight;
             s_leaf: int32 scratch, its leaf.
 
-    Weights follow :mod:`nerfbot.rendering`: w_i = T_i (1 - exp(-tau_i)), tau_i = sigma_i dt_i,
+    Weights follow :mod:`nerfbot.ops.rendering`: w_i = T_i (1 - exp(-tau_i)), tau_i = sigma_i dt_i,
     in float64.
     """
     n_sh = (leaf_data.shape[1] - 1) // 3
@@ -357,7 +357,7 @@ def pack_segments(counts, src_start, starts, opacity, depth, far, empty_opacity,
         s_ts, s_te, s_sigma, s_w: the scratch arrays.
         ray_indices (M,) int64, t_starts, t_ends, sigmas, weights (M,) float32: packed outputs.
         median: (R,) float32 output: the midpoint of the first segment where the accumulated
-            weight (float64) reaches half the opacity (:func:`nerfbot.rendering.median_depth`),
+            weight (float64) reaches half the opacity (:func:`nerfbot.ops.rendering.median_depth`),
             ``far`` for empty rays.
     """
     for r in prange(counts.shape[0]):

@@ -1,5 +1,5 @@
 """Packing the per-sample scratch of the fused renderers (FastNeRF cache, KiloNeRF) into the
-sorted packed arrays of :class:`nerfbot.rendering.RenderOutput`, with the median depth."""
+sorted packed arrays of :class:`nerfbot.ops.rendering.RenderOutput`, with the median depth."""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """Numba CPU kernels of the factorised plane encoding (K-Planes, Fridovich-Keil et al. 2023;
 HexPlane, Cao & Johnson 2023).
 
-The plain-torch twin lives in :func:`nerfbot.encodings.plane_encode_reference`; tests assert the
+The plain-torch twin lives in :func:`nerfbot.ops.encodings.plane_encode_reference`; tests assert the
 two agree. Both use the same grid arithmetic:
 
 * a point ``x`` in [0, 1]^D is projected on P axis-aligned planes, plane ``p`` spanning axes

@@ -1,0 +1,1 @@
+"""The ``nerfbot`` command line and the demo (docs/ARCHITECTURE.md)."""

@@ -1,0 +1,976 @@
+"""The ``nerfbot`` command: capture, train, eval, render, demo, bench.
+
+Heavy imports happen inside each command so ``nerfbot --help`` stays instant. ``sims`` is
+imported before anything that imports ``mujoco``, so headless machines get ``MUJOCO_GL=egl``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import sys
+from pathlib import Path
+
+log = logging.getLogger("nerfbot")
+
+#: Exit codes: 0 success, 1 a failure inside nerfbot (a bug, or a run that diverged), 2 bad
+#: input (a flag, a file, a folder), 130 interrupted.
+EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 1, 2, 130
+
+
+class UsageError(Exception):
+    """A flag, or a combination of flags, that the command cannot run with."""
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line naming the flag, with exit code 2."""
+
+    def error(self, message: str):
+        self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+class DeferredParser(OneLineParser):
+    """A sub-parser that can add its arguments when it is first used (to parse, or to print its
+    help) rather than when it is made: ``add_arguments(parser)`` may import what it needs then.
+
+    The ``capture`` command's arguments come from :mod:`sims.cli`, which imports mujoco.
+    """
+
+    def __init__(self, *args, add_arguments=None, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._add_arguments = add_arguments
+
+    def add_deferred_arguments(self) -> None:
+        """Add the deferred arguments now (once)."""
+        add, self._add_arguments = self._add_arguments, None
+        if add is not None:
+            add(self)
+
+    def parse_known_args(self, args=None, namespace=None):
+        self.add_deferred_arguments()
+        return super().parse_known_args(args, namespace)
+
+    def format_usage(self):
+        self.add_deferred_arguments()
+        return super().format_usage()
+
+    def format_help(self):
+        self.add_deferred_arguments()
+        return super().format_help()
+
+
+def one_line(exc: BaseException) -> str:
+    """The message of ``exc`` on one line (an OSError's strerror and file name kept)."""
+    text = str(exc) or type(exc).__name__
+    if isinstance(exc, KeyError) and exc.args:
+        text = str(exc.args[0])
+    return " ".join(part.strip() for part in text.splitlines() if part.strip())
+
+
+# -- helpers ---------------------------------------------------------------------------------
+def parse_option(text: str) -> tuple[str, object]:
+    """``key=value`` -> (key, value), the value parsed as JSON when it is JSON (numbers, bools)."""
+    if "=" not in text:
+        raise argparse.ArgumentTypeError(f"--option expects key=value, got {text!r}")
+    key, value = text.split("=", 1)
+    try:
+        return key.strip(), json.loads(value)
+    except json.JSONDecodeError:
+        return key.strip(), value
+
+
+def _parse_background(text: str | None):
+    if text is None or text in ("learned", "white", "black"):
+        return text
+    try:
+        parts = [float(v) for v in text.split(",")]
+    except ValueError:
+        parts = []
+    if len(parts) != 3 or not all(0.0 <= p <= 1.0 for p in parts):
+        raise UsageError(f"--background: expected learned, white, black or R,G,B in [0, 1], "
+                         f"got {text!r}")
+    return parts
+
+
+def _number(convert, accept, expected: str):
+    """An argparse type: ``convert(text)`` (int or float) when ``accept`` takes it, else an
+    error saying what was ``expected``."""
+    def parse(text: str):
+        try:
+            value = convert(text)
+        except ValueError:
+            value = None
+        if value is None or not accept(value):
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
+        return value
+    return parse
+
+
+_positive_int = _number(int, lambda v: v >= 1, "a positive integer")
+#: An integer >= 0: a count, or a random seed (numpy's generators take no negative seeds).
+_non_negative_int = _number(int, lambda v: v >= 0, "an integer >= 0")
+_positive_float = _number(float, lambda v: 0.0 < v < math.inf, "a positive finite number")
+#: A number >= 0, ``inf`` allowed (a cadence that never comes).
+_non_negative_float = _number(float, lambda v: v >= 0.0, "a number >= 0")
+#: A time in [0, 1] (the span of a dynamic capture).
+_unit_time = _number(float, lambda v: 0.0 <= v <= 1.0, "a time in [0, 1]")
+
+
+#: The longest image side a command renders (pixels); larger requests are refused up front
+#: rather than failing in an allocation.
+MAX_IMAGE_SIDE = 16384
+
+
+def _image_side(text: str) -> int:
+    value = _positive_int(text)
+    if value > MAX_IMAGE_SIDE:
+        raise argparse.ArgumentTypeError(f"an image side of at most {MAX_IMAGE_SIDE} pixels, "
+                                         f"got {text!r}")
+    return value
+
+
+def _device(text: str) -> str:
+    """A torch device this machine has ("cpu", "cuda", "cuda:1", ...)."""
+    import torch
+
+    try:
+        device = torch.device(text)
+        torch.empty(0, device=device)
+    except (RuntimeError, AssertionError) as err:  # unknown name, or no such device here
+        reason = str(err).strip().splitlines()[0] if str(err).strip() else "not available"
+        raise argparse.ArgumentTypeError(f"no device {text!r} here ({reason[:120]})")
+    return text
+
+
+def _times(text: str) -> tuple[float, ...]:
+    """``S1,S2,...``: non-negative finite seconds."""
+    try:
+        values = tuple(float(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        values = ()
+    if not values or not all(0.0 <= v < math.inf for v in values):
+        raise argparse.ArgumentTypeError(f"expected comma-separated times in seconds, >= 0, "
+                                         f"got {text!r}")
+    return values
+
+
+def _load_dataset(path, aabb=None, background=None):
+    from nerfbot.data import load_dataset
+
+    return load_dataset(path, aabb=aabb, background=background)
+
+
+def _check_option_names(method: str, options: dict) -> None:
+    """Refuse ``--option`` keys ``method`` does not have (before anything is written)."""
+    from nerfbot.methods import option_names
+
+    unknown = sorted(set(options) - set(option_names(method)))
+    if unknown:
+        raise UsageError(f"--option: method {method!r} has no option(s) {unknown}; known: "
+                         f"{option_names(method)}")
+
+
+# -- commands --------------------------------------------------------------------------------
+def cmd_capture(args) -> int:
+    from sims.cli import run_capture
+
+    run_capture(args)
+    return 0
+
+
+def cmd_train(args) -> int:
+    from nerfbot.data.outputs import check_output_folder
+    from nerfbot.train.checkpoints import CHECKPOINT
+
+    auto_goal = args.target_psnr is not None or args.time_budget is not None
+    if args.method != "auto" and (auto_goal or args.bench_table is not None):
+        raise UsageError("--target-psnr / --time-budget / --bench-table need "
+                         "--method auto")
+    if args.target_psnr is not None and args.time_budget is not None:
+        raise UsageError("give --target-psnr or --time-budget, not both")
+    if args.max_steps is None and args.max_seconds is None and not auto_goal:
+        raise UsageError("give a budget, --max-steps N and/or --max-seconds S"
+                         + (" (or, with --method auto, --target-psnr / --time-budget)"
+                            if args.method == "auto" else ""))
+    if args.resume and args.overwrite:
+        raise UsageError("give --resume (continue the run in --out) or --overwrite (start it "
+                         "over), not both")
+    out = Path(args.out)
+    folder = check_output_folder(out, "run", overwrite=args.overwrite, resume=args.resume)
+    aabb = None if args.aabb is None else [args.aabb[:3], args.aabb[3:]]
+    background = _parse_background(args.background)
+    colour = None if background in (None, "learned") else background  # compositing colour
+    ds = _load_dataset(args.data, aabb, colour)
+    options = dict(args.option or [])
+    if args.method != "auto":
+        _check_option_names(args.method, options)
+        _train_config(args, args.method, options, args.max_seconds, background).validate()
+    # the run folder exists from here on; a failure before the first checkpoint removes it
+    with folder.writing(keep=lambda: (out / CHECKPOINT).exists()):
+        return _train_into(args, folder.path, ds, options, background)
+
+
+def _train_config(args, method: str, options: dict, max_seconds, background):
+    from nerfbot.train.trainer import TrainConfig
+
+    return TrainConfig(method=method, max_steps=args.max_steps,
+                       max_seconds=max_seconds, seed=args.seed, lr=args.lr,
+                       options=options, background=background,
+                       depth_weight=args.depth_weight,
+                       eval_at_seconds=args.eval_at or (),
+                       checkpoint_every_seconds=args.checkpoint_every_seconds,
+                       checkpoint_every_steps=args.checkpoint_every_steps,
+                       device=args.device, progress=not args.no_progress)
+
+
+def _train_into(args, out: Path, ds, options: dict, background) -> int:
+    """The part of ``nerfbot train`` that writes into the run folder ``out``."""
+    from nerfbot.eval.evaluation import evaluate
+    from nerfbot.models.base import num_params
+    from nerfbot.train.trainer import Trainer
+    from nerfbot.data.writers import write_json_atomic
+
+    method, max_seconds = args.method, args.max_seconds
+    if method == "auto":
+        from nerfbot.bench.auto_sweep import auto_train_config
+
+        try:
+            choice = auto_train_config(ds.manifest, Path(args.data), out, options,
+                                       args.target_psnr, args.time_budget, args.bench_table)
+        except (ValueError, FileNotFoundError) as err:
+            raise UsageError(f"--method auto: {err}")
+        method, options = choice.method, choice.options
+        if choice.budget_seconds is not None:
+            max_seconds = choice.budget_seconds
+        for line in choice.reasons:
+            log.info("auto: %s", line)
+    config = _train_config(args, method, options, max_seconds, background)
+
+    def curve_eval(model):
+        return {"psnr": evaluate(model, ds, "test", max_images=args.eval_images,
+                                 with_ssim=False)["psnr"]}
+
+    scored = bool(ds.splits.get("test"))  # a one-frame dataset has no test frame
+    if not scored:
+        log.warning("%s: no 'test' frame (splits: %s); the run gets no test metrics", ds.root,
+                    ds.split_sizes())
+    trainer = Trainer(ds, out, config,
+                      evaluate_fn=curve_eval if args.eval_at and scored else None)
+    if args.resume and trainer.load():
+        log.info("resumed %s at step %d (%.1f s trained)", out, trainer.step, trainer.train_seconds)
+    if args.method == "auto":  # after a resume was found consistent with the run
+        write_json_atomic(out / "auto.json", choice.to_dict())
+    summary = trainer.train()
+    metrics = evaluate(trainer.model, ds, "test") if scored else {}
+    metrics.update(method=method, num_params=num_params(trainer.model), **summary)
+    write_json_atomic(out / "metrics.json", metrics, allow_nan=True)
+    print(json.dumps(metrics, indent=2))
+    return 0
+
+
+def _float_list(text: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}")
+    if not values:
+        raise argparse.ArgumentTypeError("expected at least one number")
+    return values
+
+
+def _run_and_dataset(args):
+    """(model, checkpoint info, dataset folder, dataset) of ``args.run`` evaluated on
+    ``args.data`` (default: the dataset the run was trained on)."""
+    from nerfbot.data.run_dataset import resolve_run_dataset
+    from nerfbot.train.runs import load_model
+
+    run = Path(args.run)
+    model, info = load_model(run, args.device)
+    if args.data:
+        return model, info, Path(args.data), _load_dataset(args.data)
+    data, ds = resolve_run_dataset(run, info["spec"].get("dataset"))
+    return model, info, data, ds
+
+
+def cmd_eval(args) -> int:
+    from nerfbot.eval.evaluation import evaluate
+    from nerfbot.models.base import num_params
+
+    model, info, data, ds = _run_and_dataset(args)
+    metrics = evaluate(model, ds, args.split, downscale=args.downscale,
+                       supersample=args.supersample)
+    metrics.update(method=info["spec"]["method"], num_params=num_params(model),
+                   train_seconds=info["train_seconds"], steps=info["step"], split=args.split,
+                   data=str(data))
+    if args.depth_sweep:
+        from nerfbot.eval.depth_eval import (DEFAULT_THRESHOLDS, depth_mode_sweep,
+                                             plot_threshold_sweep)
+
+        sweep = depth_mode_sweep(model, ds, args.split, args.thresholds or DEFAULT_THRESHOLDS,
+                                 progress=not args.json)
+        metrics["depth_sweep"] = sweep.to_dict()
+        if args.plot:
+            plot_threshold_sweep(sweep, args.plot, title=f"{data.name}: {args.split} split")
+    if args.json:
+        print(json.dumps(metrics))
+    else:
+        for k, v in metrics.items():
+            print(f"{k:>22}: {v}")
+    return 0
+
+
+def _bake_request(args) -> tuple[str, dict]:
+    """(baked method, bake options) of ``nerfbot bake``'s flags: ``--method M`` with its
+    ``--option``s, where ``--cache NP,ND`` spells fastnerf_cache with options np, nd,
+    ``--octree DEPTH`` plenoctree_octree with depth, and ``--finetune-steps N`` the option
+    finetune_steps."""
+    spelled = []  # (flag, the baked method it names or None, the options it gives)
+    if args.method is not None:
+        spelled.append(("--method", args.method, {}))
+    if args.cache is not None:
+        if len(args.cache) != 2:
+            raise UsageError(f"--cache wants NP,ND (two integers), got {args.cache}")
+        spelled.append(("--cache", "fastnerf_cache", {"np": args.cache[0], "nd": args.cache[1]}))
+    if args.octree is not None:
+        spelled.append(("--octree", "plenoctree_octree", {"depth": args.octree}))
+    if args.finetune_steps is not None:
+        spelled.append(("--finetune-steps", None, {"finetune_steps": args.finetune_steps}))
+    methods = {method for _, method, _ in spelled if method}
+    if not methods:
+        from nerfbot.method_names import BAKED
+
+        raise UsageError(f"give the baked method: --method {'|'.join(sorted(BAKED))}, or "
+                         "--cache NP,ND (fastnerf) / --octree DEPTH (plenoctree)")
+    if len(methods) > 1:
+        raise UsageError(f"{' / '.join(f for f, m, _ in spelled if m)}: these name different "
+                         f"baked methods ({', '.join(sorted(methods))}); give one")
+    options = {k: v for _, _, given in spelled for k, v in given.items()}
+    for key, value in args.option or []:
+        if key in options:
+            raise UsageError(f"--option {key}: given twice (--cache / --octree / "
+                             "--finetune-steps set it too)")
+        options[key] = value
+    return methods.pop(), options
+
+
+def _check_bake_options(method: str, options: dict) -> None:
+    """Refuse options that the recipe of ``method`` does not bake with (before anything is
+    written)."""
+    from nerfbot.methods import bake_option_names
+
+    known = bake_option_names(method)
+    for key in options:
+        if key not in known:
+            flag = "--finetune-steps" if key == "finetune_steps" else f"--option {key}"
+            raise UsageError(f"{flag}: {method} is baked with option(s) {', '.join(known)}")
+
+
+def cmd_bake(args) -> int:
+    """Bake a trained run into a faster renderer (a run folder of its own) with the recipe of
+    the baked method in the registry, as a bench point does."""
+    from nerfbot.train.baked_runs import write_baked_run
+    from nerfbot.data.identity import dataset_identity
+    from nerfbot.data.outputs import check_output_folder
+    from nerfbot.methods import bake_model
+
+    method, options = _bake_request(args)
+    _check_bake_options(method, options)
+    _refuse_source_run(Path(args.run), Path(args.out))
+    check_output_folder(args.out, "baked_run", overwrite=args.overwrite)  # before baking
+    model, info, data, ds = _run_and_dataset(args)
+    baked, spec, extra = bake_model(method, model, info["spec"], ds, options, seed=args.seed,
+                                    progress=not args.no_progress)
+    extra = {"source_run": str(args.run), "source_method": info["spec"]["method"], **extra}
+    spec = {**spec, "dataset": dataset_identity(ds)}  # the dataset at ``data``, as eval checks
+    write_baked_run(baked, spec, info, args.out, data=data, extra=extra,
+                    overwrite=args.overwrite)
+    print(json.dumps(extra | {"out": str(args.out)}))
+    return 0
+
+
+def _refuse_source_run(run: Path, out: Path) -> None:
+    """``nerfbot bake RUN --out RUN`` would overwrite the run being baked."""
+    import os
+
+    same = out.exists() and run.exists() and os.path.samefile(out, run)
+    if same or out.absolute() == run.absolute():
+        raise FileExistsError(f"{out}: the run being baked; choose another --out for the baked "
+                              "run")
+
+
+def cmd_estimate_joints(args) -> int:
+    from nerfbot.data.conditioning import Conditioning
+    from nerfbot.query.joint_estimation import JointEstimateConfig, evaluate_joint_estimation
+
+    model, info, data, ds = _run_and_dataset(args)
+    conditioning = Conditioning.from_dict(info["spec"].get("conditioning"))
+    cfg = JointEstimateConfig(seed=args.seed)
+    if args.steps is not None:
+        cfg.steps = args.steps
+    idx = ds.indices(args.split)[::args.every]
+    if args.max_images:
+        idx = idx[:args.max_images]
+    result = evaluate_joint_estimation(model, ds, conditioning, idx, config=cfg,
+                                       progress=not args.json and not args.no_progress)
+    result.update(method=info["spec"]["method"], split=args.split, data=str(data),
+                  num_images=len(idx))
+    if args.json:
+        print(json.dumps(result))
+    else:
+        for r in result["per_image"]:
+            errs = ", ".join(f"{n} {e:.2f} {result['units'][n]}" for n, e in r["error"].items())
+            print(f"{r['frame']}: {errs}")
+        for n, e in result["median_error"].items():
+            print(f"median error {n}: {e:.2f} {result['units'][n]} (mean "
+                  f"{result['mean_error'][n]:.2f})")
+    return 0
+
+
+def _orbit_cameras(model, frames: int, size, ds):
+    """An orbit around the scene, framed like the training cameras of the dataset ``ds`` when
+    it is known (not None)."""
+    import numpy as np
+
+    from nerfbot.ops.cameras import Cameras, orbit_poses
+
+    aabb = model.aabb.cpu().numpy()
+    target = 0.5 * (aabb[0] + aabb[1])
+    radius, elevation, fov = 2.0 * float(np.linalg.norm(aabb[1] - aabb[0])), 30.0, 40.0
+    width = height = 128
+    if ds is not None:
+        idx = ds.indices("train") if ds.splits.get("train") else list(range(len(ds)))
+        offsets = ds.c2w[idx, :3, 3] - target
+        dist = np.linalg.norm(offsets, axis=1)
+        radius = float(np.median(dist))
+        elevation = float(np.degrees(np.median(np.arcsin(offsets[:, 2] / dist))))
+        width, height = (int(v) for v in ds.sizes[idx[0]])
+        fov = float(np.degrees(2 * np.arctan(0.5 * height / ds.intrinsics[idx[0], 1])))
+    if size:
+        width, height = (size[0], size[0]) if len(size) == 1 else size[:2]
+    return Cameras.pinhole(orbit_poses(target, radius, elevation, frames), fov, width, height)
+
+
+def _render_dataset(args, run: Path, info, needed: bool):
+    """The dataset ``nerfbot render`` takes its views from: ``--data``, else the one the run
+    was trained on (found and checked by :func:`resolve_run_dataset`). When it is not
+    ``needed`` (an orbit) and cannot be found, None: the orbit is framed from the bounds."""
+    from nerfbot.data.run_dataset import resolve_run_dataset
+
+    if args.data:
+        return _load_dataset(args.data)
+    try:
+        return resolve_run_dataset(run, info["spec"].get("dataset"))[1]
+    except FileNotFoundError as err:
+        if needed:
+            raise
+        log.warning("%s; framing the orbit from the scene bounds", one_line(err))
+        return None
+
+
+def _render_plan(args, model, info, ds):
+    """Cameras and per-image conditions (or None) for ``nerfbot render`` (``ds``: the dataset
+    of :func:`_render_dataset`)."""
+    import numpy as np
+    import torch
+
+    from nerfbot.data.conditioning import Conditioning, frame_conditions
+    from nerfbot.query.render import sweep_conditions
+
+    conditioning = Conditioning.from_dict(info["spec"].get("conditioning"))
+    for flag, given, kind in (("--time", args.time is not None, "time"),
+                              ("--joints", bool(args.joints), "joints")):
+        if given and conditioning.kind != kind:
+            raise UsageError(f"{flag}: {args.run} is a {conditioning.kind} run, not conditioned "
+                             f"on {kind}")
+    fixed = None
+    if args.time is not None or args.joints:
+        fixed = conditioning.vector(args.time, args.joints)
+    if args.sweep:
+        if conditioning.is_static:
+            raise ValueError(f"{args.run}: --sweep needs a time- or joint-conditioned run; this "
+                             "one is static")
+        conds = sweep_conditions(conditioning, args.sweep, args.frames, fixed)
+        views = max(args.sweep_views, 1)
+        cams = _orbit_cameras(model, views, args.size, ds)
+        return cams[torch.as_tensor(np.arange(len(conds)) * views // len(conds))], conds
+    if args.path == "orbit":
+        cams = _orbit_cameras(model, args.frames, args.size, ds)
+        if fixed is None and not conditioning.is_static:
+            fixed = conditioning.vector(0.0, {}) if conditioning.kind == "time" else \
+                conditioning.vector(None, {})
+        return cams, [fixed] * len(cams)
+    idx = ds.indices(args.path)
+    per_frame = frame_conditions(ds, conditioning)
+    conds = [fixed if fixed is not None else (None if per_frame is None else per_frame[i].tolist())
+             for i in idx]
+    return ds.cameras(idx), conds
+
+
+def _render_depth_query(args, run: Path) -> tuple[str, float | None, str]:
+    """(mode, threshold in 1/m or None, where they came from) of ``nerfbot render``'s depth:
+    the flags, else the ``query_defaults`` that ``--method auto`` wrote to RUN/auto.json
+    (threshold depth for scenes with glass), else expected depth."""
+    from nerfbot.data.spec import read_json
+    from nerfbot.query.render import as_thresholds
+
+    auto = run / "auto.json"
+    defaults = (read_json(auto).get("query_defaults") or {}) if auto.exists() else {}
+    mode = args.depth_mode or defaults.get("depth_mode", "expected")
+    threshold = args.threshold if args.threshold is not None else defaults.get("threshold")
+    source = "--depth-mode" if args.depth_mode else (f"{auto}" if "depth_mode" in defaults
+                                                     else "default")
+    if mode != "threshold":
+        return mode, None, source
+    if threshold is None:
+        raise UsageError(f"threshold depth needs --threshold M (density, "
+                         f"1/m; {auto} gives none)")
+    return mode, as_thresholds(threshold)[0], source
+
+
+def _depth_of(img: dict, mode: str):
+    """((H, W) z-depth in metres, (H, W) bool valid) of a :func:`render_image` result."""
+    import numpy as np
+
+    if mode == "threshold":
+        z = img["threshold_z_depth"][0]
+        return z, np.isfinite(z)
+    z = img["median_z_depth"] if mode == "median" else img["z_depth"]
+    return z, img["opacity"] > 0.5
+
+
+#: The video files ``nerfbot render --out`` writes; any other --out is a folder of images.
+VIDEO_SUFFIXES = (".mp4", ".avi")
+
+
+def cmd_render(args) -> int:
+    import numpy as np
+
+    from nerfbot.data.outputs import check_output_file, check_output_folder
+    from nerfbot.query.export import colorize_depth, save_image, to_uint8, write_video
+    from nerfbot.query.render import render_image
+    from nerfbot.train.runs import load_model
+    from tqdm.auto import tqdm
+
+    run, out = Path(args.run), Path(args.out)
+    if args.size is not None and len(args.size) > 2:
+        raise UsageError(f"--size: give N or W H, got {len(args.size)} numbers")
+    video = out.suffix.lower() in VIDEO_SUFFIXES
+    if out.suffix and not video and not out.is_dir():
+        raise UsageError(f"--out {out}: nerfbot writes videos as {', '.join(VIDEO_SUFFIXES)}; "
+                         f"not {out.suffix} (a folder name without an extension gets images)")
+    folder = None if video else check_output_folder(out, "render", overwrite=args.overwrite)
+    if video:
+        check_output_file(out, overwrite=args.overwrite)
+    mode, threshold, source = _render_depth_query(args, run)
+    model, info = load_model(run, args.device)
+    ds = _render_dataset(args, run, info, needed=args.path != "orbit" and not args.sweep)
+    cams, conds = _render_plan(args, model, info, ds)
+    thresholds = [threshold] if mode == "threshold" else []
+    images = (render_image(model, cams, i, cond=conds[i], supersample=args.supersample,
+                           thresholds=thresholds)
+              for i in range(len(cams)))
+    images = tqdm(images, total=len(cams), desc="render", disable=args.no_progress)
+    if video:
+        def frames():
+            for img in images:
+                if args.what == "rgb":
+                    yield to_uint8(img["rgb"])
+                elif args.what == "depth":
+                    yield colorize_depth(*_depth_of(img, mode))
+                else:
+                    yield to_uint8(np.repeat(img["opacity"][..., None], 3, -1))
+        write_video(out, frames(), args.fps)
+    else:
+        with folder.writing():
+            for i, img in enumerate(images):
+                z, valid = _depth_of(img, mode)
+                save_image(out / f"rgb_{i:04d}.png", img["rgb"])
+                save_image(out / f"depth_{i:04d}.png", colorize_depth(z, valid))
+                save_image(out / f"opacity_{i:04d}.png",
+                           np.repeat(img["opacity"][..., None], 3, -1))
+                np.save(out / f"depth_{i:04d}.npy", z.astype(np.float32))
+    what = f"a {args.sweep} sweep" if args.sweep else f"{args.path} views"
+    depth = mode + (f" (m = {threshold:g} /m)" if threshold is not None else "")
+    print(f"wrote {len(cams)} images of {what} to {out}; depth: {depth}, from {source}")
+    return 0
+
+
+def cmd_demo(args) -> int:
+    from nerfbot.app.demo import run_demo
+
+    metrics = run_demo(Path(args.out), seconds=args.seconds, size=args.size, views=args.views,
+                       test_views=args.test_views, seed=args.seed, progress=not args.no_progress,
+                       overwrite=args.overwrite)
+    print(json.dumps(metrics, indent=2))
+    return 0
+
+
+def _joint_values(text: str) -> dict[str, float]:
+    out = {}
+    for item in _str_list(text):
+        name, sep, value = item.partition("=")
+        try:
+            out[name.strip()] = float(value)
+        except ValueError:
+            sep = ""
+        if sep and not math.isfinite(out[name.strip()]):
+            sep = ""
+        if not sep or not name.strip():
+            raise argparse.ArgumentTypeError(f"expected NAME=VALUE, got {item!r}")
+    return out
+
+
+def _str_list(text: str) -> list[str]:
+    values = [v.strip() for v in text.split(",") if v.strip()]
+    if not values:
+        raise argparse.ArgumentTypeError("expected a comma-separated list")
+    return values
+
+
+def _int_list(text: str) -> list[int]:
+    """``N1,N2,...``: positive integers (grid sizes, image sizes)."""
+    try:
+        values = [int(v) for v in _str_list(text)]
+    except ValueError:
+        values = []
+    if not values or min(values) < 1:
+        raise argparse.ArgumentTypeError(f"expected comma-separated positive integers, got "
+                                         f"{text!r}")
+    return values
+
+
+def _option_sweep(text: str):
+    from nerfbot.bench.sweep import parse_option_sweep
+
+    try:
+        return parse_option_sweep(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err))
+
+
+def cmd_bench(args) -> int:
+    from nerfbot.bench.sweep import BenchConfig, BenchError, run_bench
+
+    options: dict = {}
+    for key, values in args.option or []:  # a repeated key adds values
+        merged = options.setdefault(key, [])
+        merged += [v for v in values if v not in merged]
+    cfg = BenchConfig(data=[d for entry in args.data for d in entry], methods=args.methods,
+                      budgets=args.budgets, out=args.out, budget_kind=args.budget_kind,
+                      sizes=args.sizes or [None], options=options, repeats=args.repeats,
+                      seed=args.seed, views=args.views, test_views=args.test_views,
+                      eval_images=args.eval_images, chamfer=not args.no_chamfer,
+                      mesh_resolution=args.mesh_resolution, mesh_threshold=args.mesh_threshold,
+                      chamfer_points=args.chamfer_points, executor=args.executor,
+                      address=args.address, ray_num_cpus=args.ray_num_cpus, force=args.force,
+                      keep_checkpoints=args.keep_checkpoints, progress=not args.no_progress)
+    try:
+        result = run_bench(cfg)
+    except BenchError as err:
+        print(f"nerfbot bench: error: {err}", file=sys.stderr)
+        return 2
+    print(f"{result.ran} point(s) run, {result.skipped} already measured; "
+          f"{len(result.rows)} configuration(s) in {result.out / 'bench.md'}")
+    if result.failures:
+        print(f"nerfbot bench: {len(result.failures)} point(s) failed (see bench.json "
+              "'failures'; a rerun retries them)", file=sys.stderr)
+        return 1
+    return 0
+
+
+# -- parser ----------------------------------------------------------------------------------
+def _capture_arguments(parser: argparse.ArgumentParser) -> None:
+    from sims.cli import add_capture_arguments
+
+    add_capture_arguments(parser)
+
+
+def build_parser(eager: bool = False) -> argparse.ArgumentParser:
+    """The ``nerfbot`` parser. It imports no method, torch or mujoco: the ``capture`` command's
+    arguments are added when that command is parsed or its help printed (at once with
+    ``eager``)."""
+    from nerfbot.method_names import BAKED, DESCRIPTIONS
+
+    parser = OneLineParser(prog="nerfbot", description=__doc__.splitlines()[0])
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=DeferredParser)
+
+    p = sub.add_parser("capture", help="render a MuJoCo scene into a posed-image dataset",
+                       add_arguments=_capture_arguments)
+    if eager:
+        p.add_deferred_arguments()
+    p.set_defaults(func=cmd_capture)
+
+    p = sub.add_parser("train", help="train a radiance field on a dataset")
+    p.add_argument("--data", required=True, type=Path, help="dataset folder or transforms JSON")
+    p.add_argument("--method", default="ngp", choices=sorted(DESCRIPTIONS) + ["auto"],
+                   help="; ".join(f"{k}: {v}" for k, v in DESCRIPTIONS.items())
+                   + "; auto: model only what the scene manifest says it needs (see "
+                     "--target-psnr / --time-budget)")
+    p.add_argument("--target-psnr", type=_positive_float, default=None, metavar="DB",
+                   help="with --method auto: train for the shortest budget that reaches this "
+                        "test PSNR (from --bench-table, or a short built-in sweep)")
+    p.add_argument("--time-budget", type=_positive_float, default=None, metavar="S",
+                   help="with --method auto: the best configuration that trains within S s")
+    p.add_argument("--bench-table", type=Path, default=None,
+                   help="a `nerfbot bench` output (bench.json or its folder) to choose from")
+    p.add_argument("--out", required=True, type=Path, help="run folder")
+    p.add_argument("--max-steps", type=int, default=None, help="step budget")
+    p.add_argument("--max-seconds", type=float, default=None,
+                   help="training-loop time budget in seconds (loading and evaluation excluded)")
+    p.add_argument("--seed", type=_non_negative_int, default=0)
+    p.add_argument("--lr", type=float, default=None, help="learning rate (default: the method's)")
+    p.add_argument("--depth-weight", type=float, default=0.0, metavar="W",
+                   help="depth supervision from the dataset's depth maps (DS-NeRF style, for "
+                        "RGB-D captures): weight of the L1 depth error in scene-cube diagonals "
+                        "(default 0: RGB only)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the run in --out (with the same data, method, options, "
+                        "bounds, background and seed; the budgets may change)")
+    p.add_argument("--checkpoint-every-seconds", type=_non_negative_float, default=60.0,
+                   metavar="S", help="write a checkpoint at least every S s of training "
+                                     "(default 60; inf: only at the end)")
+    p.add_argument("--checkpoint-every-steps", type=_positive_int, default=None, metavar="N",
+                   help="also write a checkpoint after every N-th step (default: none)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="start over in --out when it holds an earlier run (its files are "
+                        "deleted; a folder holding files nerfbot did not write is still refused)")
+    p.add_argument("--aabb", type=float, nargs=6, default=None,
+                   metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
+                   help="scene bounds in metres (overrides the manifest and the camera estimate)")
+    p.add_argument("--background", default=None,
+                   help="learned | white | black | R,G,B (default: learned for RGB captures, "
+                        "the compositing colour for RGBA ones)")
+    p.add_argument("--option", action="append", type=parse_option, metavar="KEY=VALUE",
+                   help="method option, e.g. log2_hashmap_size=19 (repeatable)")
+    p.add_argument("--eval-at", type=_times, default=None, metavar="S1,S2,...",
+                   help="record test PSNR at these training times (s), e.g. 30,60,120,180")
+    p.add_argument("--eval-images", type=_positive_int, default=None, metavar="N",
+                   help="learning-curve points use the first N test images (default: all)")
+    p.add_argument("--device", type=_device, default="cpu")
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser("eval", help="evaluate a run on a dataset split")
+    p.add_argument("run", type=Path)
+    p.add_argument("--data", type=Path, default=None,
+                   help="dataset folder (default: the one the run was trained on)")
+    p.add_argument("--split", default="test")
+    p.add_argument("--downscale", type=_positive_int, default=1, metavar="K",
+                   help="evaluate at 1/K resolution: cameras scaled by 1/K, ground truth "
+                        "area-averaged (the multiscale protocol; default 1)")
+    p.add_argument("--supersample", type=_positive_int, default=None, metavar="S",
+                   help="S x S rays per pixel for colour (default: what the run was trained with)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--depth-sweep", action="store_true",
+                   help="also compare expected, median and threshold depth (and the simulated "
+                        "sensor's) per pixel class: transparent / opaque objects / scene")
+    p.add_argument("--thresholds", type=_float_list, default=None, metavar="M1,M2,...",
+                   help="density thresholds of the sweep, 1/m (default 0.5 ... 1000)")
+    p.add_argument("--plot", type=Path, default=None,
+                   help="with --depth-sweep: write the sweep as a PNG plot here")
+    p.add_argument("--device", type=_device, default="cpu")
+    p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser("bake", help="bake a trained run into a faster renderer: a FastNeRF "
+                                    "cache (--cache) or a PlenOctree (--octree)",
+                       description="Bake a trained run into a faster renderer (a run of its "
+                                   "own) with the baked method's recipe, as `nerfbot bench` "
+                                   "does: --method M [--option KEY=VALUE ...]; --cache NP,ND "
+                                   "spells --method fastnerf_cache --option np=NP --option "
+                                   "nd=ND, --octree DEPTH --method plenoctree_octree --option "
+                                   "depth=DEPTH, --finetune-steps N --option finetune_steps=N.")
+    p.add_argument("run", type=Path, help="trained run folder (fastnerf or plenoctree)")
+    p.add_argument("--out", required=True, type=Path,
+                   help="run folder for the baked renderer (new or empty; not RUN)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace --out when it holds an earlier baked run")
+    p.add_argument("--method", default=None, choices=sorted(BAKED),
+                   help="the baked method: " + "; ".join(f"{k}, from a {v} run"
+                                                        for k, v in BAKED.items()))
+    p.add_argument("--option", action="append", type=parse_option, metavar="KEY=VALUE",
+                   help="bake option, e.g. np=192, depth=7, finetune_steps=200 (repeatable)")
+    p.add_argument("--cache", type=_int_list, default=None, metavar="NP,ND",
+                   help="FastNeRF cache: position outputs on an NP^3 grid (occupied cells "
+                        "only), direction outputs on an ND x ND grid")
+    p.add_argument("--octree", type=_positive_int, default=None, metavar="DEPTH",
+                   help="PlenOctree: octree of this depth (leaf size = cube / 2^DEPTH)")
+    p.add_argument("--finetune-steps", type=_non_negative_int, default=None, metavar="N",
+                   help="PlenOctree: fine-tune the octree leaves on the training images for N "
+                        "steps (default 0)")
+    p.add_argument("--data", type=Path, default=None,
+                   help="dataset folder (default: the one the run was trained on)")
+    p.add_argument("--seed", type=_non_negative_int, default=0)
+    p.add_argument("--device", type=_device, default="cpu")
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=cmd_bake)
+
+    p = sub.add_parser("estimate-joints",
+                       help="estimate the joint configuration of each image of a split by "
+                            "inverse rendering, and its error against the truth")
+    p.add_argument("run", type=Path)
+    p.add_argument("--data", type=Path, default=None, help="dataset (default: the run's)")
+    p.add_argument("--split", default="test")
+    p.add_argument("--every", type=_positive_int, default=1, metavar="K",
+                   help="use every K-th image of the split (e.g. one view per configuration)")
+    p.add_argument("--max-images", type=_positive_int, default=None)
+    p.add_argument("--steps", type=_positive_int, default=None,
+                   help="gradient steps per start (default: JointEstimateConfig.steps, 60)")
+    p.add_argument("--seed", type=_non_negative_int, default=0)
+    p.add_argument("--json", action="store_true")
+    p.add_argument("--device", type=_device, default="cpu")
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=cmd_estimate_joints)
+
+    p = sub.add_parser("render", help="render views of a run: a video or images")
+    p.add_argument("run", type=Path)
+    p.add_argument("--path", default="orbit", choices=("orbit", "test", "train"))
+    p.add_argument("--out", required=True, type=Path,
+                   help="video file (.mp4/.avi) or a folder for rgb/depth/opacity images "
+                        "(new or empty)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing video file, or the images of an earlier render "
+                        "folder")
+    p.add_argument("--what", default="rgb", choices=("rgb", "depth", "opacity"),
+                   help="what a video shows")
+    p.add_argument("--frames", type=_positive_int, default=60,
+                   help="orbit frames, or images of a --sweep (default 60)")
+    p.add_argument("--fps", type=_positive_float, default=24.0)
+    p.add_argument("--supersample", type=_positive_int, default=None, metavar="S",
+                   help="S x S rays per pixel for colour (default: what the run was trained "
+                        "with; 1 renders S^2 + 1 times fewer rays)")
+    p.add_argument("--size", type=_image_side, nargs="+", default=None, metavar="N",
+                   help="orbit image size N or W H (default: the training size)")
+    p.add_argument("--depth-mode", default=None, choices=("expected", "median", "threshold"),
+                   help="depth images (z-depth; .npy in metres, NaN where a threshold is never "
+                        "reached): default the run's auto.json query default (threshold for "
+                        "glass), else expected")
+    p.add_argument("--threshold", type=float, default=None, metavar="M",
+                   help="density threshold of --depth-mode threshold (1/m, Dex-NeRF)")
+    p.add_argument("--data", type=Path, default=None)
+    p.add_argument("--device", type=_device, default="cpu")
+    p.add_argument("--no-progress", action="store_true")
+    cond = p.add_argument_group("dynamic and articulated runs")
+    cond.add_argument("--time", type=_unit_time, default=None, metavar="T",
+                      help="render at time T in [0, 1] (orbit; test/train views use their own)")
+    cond.add_argument("--joints", type=_joint_values, default=None, metavar="NAME=V,...",
+                      help="render at these joint positions (radians / metres; others at the "
+                           "middle of their range)")
+    cond.add_argument("--sweep", default=None, metavar="time|JOINT",
+                      help="a video over time, or over one joint's whole range (--frames "
+                           "images), seen from one orbit camera (or --sweep-views cameras)")
+    cond.add_argument("--sweep-views", type=_positive_int, default=1, metavar="K",
+                      help="--sweep: the camera moves through K orbit positions (default 1: "
+                           "a fixed camera)")
+    p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser("demo", help="capture the tabletop, train ngp, evaluate, write renders")
+    p.add_argument("--out", type=Path, default=Path("nerfbot-demo"),
+                   help="demo folder, new or empty (default nerfbot-demo)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace --out when it holds an earlier demo")
+    p.add_argument("--seconds", type=_positive_float, default=60.0, help="training budget (s)")
+    p.add_argument("--size", type=_image_side, default=128)
+    p.add_argument("--views", type=_positive_int, default=60)
+    p.add_argument("--test-views", type=_positive_int, default=10)
+    p.add_argument("--seed", type=_non_negative_int, default=0)
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser(
+        "bench", help="sweep methods x budgets x knobs x scenes: speed, memory, quality, Pareto",
+        description="Train and evaluate every point of a sweep (scene x size x method x option "
+                    "values x budget x repeat), each in a fresh process, STRICTLY ONE AT A TIME "
+                    "on this machine: timings on a few cores must never overlap (with "
+                    "--executor ray, one point per cluster node). Writes bench.csv, bench.json, "
+                    "bench.md and PSNR-vs-train-time / PSNR-vs-render-FPS plots (Pareto fronts "
+                    "marked) to --out; metrics are medians over --repeats. Rerunning resumes: "
+                    "points already in bench.json are skipped unless --force.")
+    p.add_argument("--data", required=True, type=_str_list, action="append",
+                   metavar="DIR|SCENE[,...]",
+                   help="dataset folders and/or built-in scenes (tabletop, glassware, "
+                        "builtin:glassware:3, ...), comma-separated or repeated; built-in scenes "
+                        "are captured into OUT/data at each --sizes (an existing folder of the "
+                        "same name wins unless the name has the builtin: prefix)")
+    p.add_argument("--methods", default=["ngp"], type=_str_list, metavar="M1,M2,...",
+                   help="methods to compare (default ngp; available: "
+                        + ", ".join(sorted(DESCRIPTIONS)) + ")")
+    p.add_argument("--budgets", required=True, type=_float_list, metavar="B1,B2,...",
+                   help="training budgets: seconds of the training loop (or steps, see "
+                        "--budget-kind)")
+    p.add_argument("--budget-kind", choices=("seconds", "steps"), default="seconds")
+    p.add_argument("--out", required=True, type=Path, help="bench folder (resumed if it exists)")
+    p.add_argument("--sizes", type=_int_list, default=None, metavar="N1,N2,...",
+                   help="image sizes, pixels of the longer side: built-in scenes are captured "
+                        "at NxN, datasets downscaled (default: 128 for built-ins, datasets as "
+                        "they are)")
+    p.add_argument("--option", action="append", type=_option_sweep, metavar="KEY=V1,V2,...",
+                   help="sweep a method option (repeatable), e.g. log2_hashmap_size=15,17,19 "
+                        "(hash-table size), render_steps=128,256 (samples per ray), "
+                        "grid_resolution=32,64 (occupancy grid); a method sweeps only the "
+                        "options it has")
+    p.add_argument("--repeats", type=_positive_int, default=1,
+                   help="runs per point; tables show medians")
+    p.add_argument("--seed", type=_non_negative_int, default=0,
+                   help="repeat r trains with seed SEED+r; also the capture rig's seed")
+    p.add_argument("--views", type=_positive_int, default=60,
+                   help="train views of built-in captures")
+    p.add_argument("--test-views", type=_positive_int, default=10,
+                   help="test views of built-in captures")
+    p.add_argument("--eval-images", type=_positive_int, default=None, metavar="N",
+                   help="evaluate on the first N test images (default all)")
+    p.add_argument("--no-chamfer", action="store_true",
+                   help="skip meshing and the Chamfer distance to the MuJoCo geometry")
+    p.add_argument("--mesh-resolution", type=_positive_int, default=128,
+                   help="marching-cubes cells along the longest side of the content bounds")
+    p.add_argument("--mesh-threshold", type=_positive_float, default=None, metavar="SIGMA",
+                   help="surface density, 1/m (default: where one step of the default marcher, "
+                        "cube diagonal / 256, is 50%% opaque; about 80 for the tabletop)")
+    p.add_argument("--chamfer-points", type=_positive_int, default=100_000,
+                   help="surface samples per mesh for the Chamfer distance")
+    p.add_argument("--executor", choices=("local", "ray"), default="local",
+                   help="local: one subprocess per point, one at a time (default); ray: points "
+                        "as Ray tasks, each taking a whole node (pip install 'nerfbot[ray]')")
+    p.add_argument("--address", default=None,
+                   help="Ray cluster address (default: start a local Ray)")
+    p.add_argument("--ray-num-cpus", type=_positive_int, default=None, metavar="N",
+                   help="CPUs each Ray task reserves (default: all CPUs of the largest node)")
+    p.add_argument("--force", action="store_true", help="rerun points already in bench.json")
+    p.add_argument("--keep-checkpoints", action="store_true",
+                   help="keep each point's checkpoint.pt in OUT/runs (default: deleted)")
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=cmd_bench)
+    return parser
+
+
+def main(argv=None) -> int:
+    from nerfbot.ops.runtime import keep_freed_memory
+
+    keep_freed_memory()  # first, before anything allocates large blocks
+    import sims  # noqa: F401  (sets MUJOCO_GL before anything imports mujoco)
+
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return args.func(args)
+    except KeyboardInterrupt:
+        print(f"nerfbot {args.command}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except (UsageError, ValueError, OSError) as exc:  # DatasetError is a ValueError
+        if args.verbose:
+            raise
+        print(f"nerfbot {args.command}: error: {one_line(exc)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except Exception as exc:  # a bug, or a run that failed (e.g. diverged): not the input's fault
+        if args.verbose:
+            raise
+        print(f"nerfbot {args.command}: error: {type(exc).__name__}: {one_line(exc)} "
+              "(a failure inside nerfbot; -v shows where)", file=sys.stderr)
+        return EXIT_FAILURE
+
+
+if __name__ == "__main__":
+    sys.exit(main())

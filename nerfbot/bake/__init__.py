@@ -1,0 +1,1 @@
+"""Recipes that turn a trained run into a baked renderer (docs/ARCHITECTURE.md)."""

@@ -1,0 +1,1 @@
+"""``nerfbot bench``: sweeps of methods x budgets, one process per point (docs/ARCHITECTURE.md)."""

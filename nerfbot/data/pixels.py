@@ -1,0 +1,184 @@
+"""Training pixels of a dataset: uniform draws among the valid pixels of every training frame
+(:class:`PixelBank`), as rays with their colours, and which ground-truth depths are usable
+(:func:`depth_valid_mask`).
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Optional
+
+import numpy as np
+import torch
+
+from nerfbot.data.dataset import Dataset
+from nerfbot.data.errors import DatasetError
+from nerfbot.ops.cameras import Rays, pixel_rays
+
+
+log = logging.getLogger(__name__)
+
+
+class ValidPixels:
+    """Uniform draws among the valid pixels of a flat (P,) validity mask, stored compactly.
+
+    Holds whichever is shorter: the valid pixel indices (a draw is a lookup), or the invalid
+    ones as ``skip[j] = invalid[j] - j``, the count of valid pixels before the j-th invalid one
+    (the r-th valid pixel is then ``r + #{j : skip[j] <= r}``). Either costs 4 bytes per entry
+    (8 beyond 2^31 pixels), so an undistortion border of a few percent costs almost nothing.
+    """
+
+    def __init__(self, valid: np.ndarray, device="cpu"):
+        valid = np.asarray(valid, dtype=bool).reshape(-1)
+        self.count = int(valid.sum())
+        """V, the number of valid pixels."""
+        dtype = np.int32 if valid.size < 2**31 else np.int64
+        invalid = np.flatnonzero(~valid)
+        self.valid = self.skip = None
+        if invalid.size <= self.count:
+            skip = invalid - np.arange(invalid.size)
+            self.skip = torch.from_numpy(skip.astype(dtype)).to(device)
+        else:
+            self.valid = torch.from_numpy(np.flatnonzero(valid).astype(dtype)).to(device)
+
+    def __len__(self) -> int:
+        return self.count
+
+    def pixel(self, rank: torch.Tensor) -> torch.Tensor:
+        """(n,) int64 pixel indices of the valid pixels of (n,) ranks in [0, V)."""
+        if self.valid is not None:
+            return self.valid[rank].long()
+        r = rank.to(self.skip.dtype)
+        return rank.long() + torch.searchsorted(self.skip, r, right=True)
+
+
+class PixelBank:
+    """All pixels of a set of frames, for drawing random training rays.
+
+    Colours are stored flat as uint8 (P, 3); a pixel index maps to (frame, row, column) through
+    per-frame offsets, so mixed image sizes work and rays are built only for drawn pixels.
+    Pixels the dataset's masks mark invalid (``Dataset.masks``: ``mask_path`` or outside an
+    undistorted image) are never drawn; without masks, draws are exactly those of an unmasked
+    bank (one ``torch.randint`` over all pixels).
+    """
+
+    def __init__(self, dataset: Dataset, indices: list[int], device="cpu",
+                 conditions: Optional[np.ndarray] = None):
+        if not indices:
+            raise DatasetError(f"{dataset.root}: the training split is empty; training needs "
+                               f"at least one frame in 'train' (splits: {dataset.split_sizes()})")
+        self.device = torch.device(device)
+        self.frames = torch.as_tensor(indices, dtype=torch.long)
+        self.cameras = dataset.cameras(indices).to(device)
+        self.pixels = torch.from_numpy(
+            np.concatenate([dataset.images[i].reshape(-1, 3) for i in indices])).to(device)
+        counts = torch.as_tensor([dataset.images[i].shape[0] * dataset.images[i].shape[1]
+                                  for i in indices], dtype=torch.long)
+        self.offsets = torch.cat([torch.zeros(1, dtype=torch.long), torch.cumsum(counts, 0)]).to(device)
+        self.valid = self._valid_pixels(dataset, indices)
+        """The drawable pixels when some frame has a mask, else None (every pixel)."""
+        self.depths: Optional[torch.Tensor] = None
+        """(P,) float32 z-depth of every pixel (NaN: unknown, outside the bounds or masked out),
+        loaded by :meth:`load_depths` for depth supervision."""
+        self._dataset, self._indices = dataset, list(indices)
+        self.last_pixels: Optional[torch.Tensor] = None
+        """(n,) pixel indices of the last :meth:`sample`."""
+        self.conds = None if conditions is None else \
+            torch.as_tensor(conditions[indices], dtype=torch.float32, device=device)
+        """(frames, C) condition vector of each frame (time or joints), None when static."""
+
+    def _valid_pixels(self, dataset: Dataset, indices: list[int]) -> Optional[ValidPixels]:
+        masks = [dataset.valid_mask(i) for i in indices]
+        if all(m is None for m in masks):
+            return None
+        flat = np.concatenate([np.ones(dataset.images[i].shape[:2], bool).reshape(-1) if m is None
+                               else np.asarray(m, bool).reshape(-1)
+                               for i, m in zip(indices, masks)])
+        valid = ValidPixels(flat, self.device)
+        if not len(valid):
+            raise DatasetError(f"{dataset.root}: every pixel of the {len(indices)} training "
+                               "frame(s) is masked out (mask_path, or outside the undistorted "
+                               "image); nothing to train on")
+        return valid
+
+    def __len__(self) -> int:
+        return int(self.offsets[-1])
+
+    def mean_color(self) -> torch.Tensor:
+        """(3,) mean colour of all valid pixels, in [0, 1]."""
+        if self.valid is None:
+            return self.pixels.float().mean(0) / 255.0
+        rank = torch.arange(len(self.valid), device=self.device)
+        total = torch.zeros(3, dtype=torch.float64, device=self.device)
+        for chunk in rank.split(1 << 20):
+            total += self.pixels[self.valid.pixel(chunk)].double().sum(0)
+        return (total / len(self.valid) / 255.0).float()
+
+    def load_depths(self) -> None:
+        """Keep the depth of every pixel (for depth supervision), NaN where
+        :func:`~nerfbot.data.pixels.depth_valid_mask` is False (masked pixels included);
+        ValueError naming the frames without depth."""
+        missing = [self._dataset.file_paths[i] for i in self._indices
+                   if self._dataset.depths[i] is None]
+        if missing:
+            raise ValueError(f"{self._dataset.root}: depth supervision needs a depth map for every "
+                             f"training frame; {len(missing)} have none (e.g. {missing[0]})")
+        maps = []
+        for i in self._indices:
+            d = np.asarray(self._dataset.depths[i], dtype=np.float32).copy()
+            d[~depth_valid_mask(self._dataset, i)] = np.nan
+            maps.append(d.reshape(-1))
+        self.depths = torch.from_numpy(np.concatenate(maps)).to(self.device)
+
+    def sample(self, n: int, generator: torch.Generator, supersample: int = 1
+               ) -> tuple[Rays, torch.Tensor, torch.Tensor]:
+        """``n`` random pixels: their rays, colours (n, 3) float32 in [0, 1], frame slots (n,).
+        Their pixel indices are kept in :attr:`last_pixels`; masked-out pixels are never drawn.
+
+        With ``supersample`` S = 1 the rays go through the pixel centres: (n,) rays. With S > 1
+        each pixel gets S x S rays, one through a uniformly random point of each cell of an
+        S x S grid over the pixel (stratified): (n * S * S,) rays, pixel after pixel."""
+        if self.valid is None:
+            p = torch.randint(len(self), (n,), generator=generator).to(self.device)
+        else:
+            p = self.valid.pixel(torch.randint(len(self.valid), (n,), generator=generator)
+                                 .to(self.device))
+        self.last_pixels = p
+        slot = torch.searchsorted(self.offsets[1:], p, right=True)
+        local = p - self.offsets[slot]
+        w = self.cameras.width[slot]
+        v, u = local // w, local % w
+        cam = self.cameras
+        if supersample == 1:
+            px, py, ray_slot = u.float() + 0.5, v.float() + 0.5, slot
+        else:
+            k = supersample * supersample
+            cell = torch.arange(k, device=self.device)
+            jitter = torch.rand((n, k, 2), generator=generator).to(self.device)
+            px = (u[:, None] + ((cell % supersample)[None] + jitter[..., 0]) / supersample)
+            py = (v[:, None] + ((cell // supersample)[None] + jitter[..., 1]) / supersample)
+            px, py = px.reshape(-1).float(), py.reshape(-1).float()
+            ray_slot = slot.repeat_interleave(k)
+        rays = pixel_rays(cam.c2w[ray_slot], cam.fx[ray_slot], cam.fy[ray_slot],
+                          cam.cx[ray_slot], cam.cy[ray_slot], px, py,
+                          1.0 / supersample, 1.0 / supersample)
+        return rays, self.pixels[p].float() / 255.0, slot
+
+
+def depth_valid_mask(dataset: Dataset, i: int) -> np.ndarray | None:
+    """(H, W) bool, the pixels of frame ``i`` whose ground-truth depth is finite, whose 3D point
+    lies inside the scene bounds, and which the frame's mask keeps (:meth:`Dataset.valid_mask`);
+    None when the frame has no depth."""
+    depth = dataset.depths[i]
+    if depth is None:
+        return None
+    cams = dataset.cameras([i])
+    rays = cams.rays(0)
+    z = torch.from_numpy(np.ascontiguousarray(depth, dtype=np.float32)).reshape(-1)
+    finite = torch.isfinite(z)
+    t = torch.where(finite, z, torch.zeros_like(z)) / rays.z_per_t
+    pts = rays.origins + rays.directions * t[:, None]
+    lo, hi = torch.as_tensor(dataset.aabb, dtype=torch.float32)
+    inside = (((pts >= lo) & (pts <= hi)).all(-1) & finite).reshape(depth.shape).numpy()
+    mask = dataset.valid_mask(i)
+    return inside if mask is None else inside & mask

@@ -1,0 +1,175 @@
+"""What robots and tasks ask of a trained model: images, depth maps, opacity, from any camera.
+
+Depth comes in three modes (:data:`DEPTH_MODES`):
+
+- ``expected``: the weight-averaged sample distance (NeRF's depth; a glass surface of low
+  density barely moves it towards the glass, as most weight lies behind).
+- ``median``: where the accumulated weight reaches one half.
+- ``threshold``: Dex-NeRF's depth, the first point along the ray where the density reaches
+  ``threshold`` (1/m), interpolated between samples; rays that never reach it are invalid (NaN),
+  never the near plane. Several thresholds are answered from one rendering pass.
+"""
+
+from __future__ import annotations
+
+from typing import Optional, Sequence
+
+import numpy as np
+import torch
+
+from nerfbot.models.base import Model
+from nerfbot.ops.cameras import Cameras, Rays
+from nerfbot.ops.rendering import RenderOutput, threshold_depth
+
+DEPTH_MODES = ("expected", "median", "threshold")
+_IMAGE_KEYS = ("rgb", "opacity", "depth", "z_depth", "median_depth", "median_z_depth")
+
+
+def as_thresholds(threshold) -> list[float]:
+    """Density threshold(s) in 1/m (a number, a sequence or None) as a list, each checked finite
+    and > 0 (ValueError otherwise)."""
+    if threshold is None:
+        return []
+    values = [float(threshold)] if np.isscalar(threshold) else [float(m) for m in threshold]
+    for m in values:
+        if not (np.isfinite(m) and m > 0):
+            raise ValueError(f"density thresholds must be finite and > 0 (1/m), got {m}")
+    return values
+
+
+@torch.no_grad()
+def render_rays_chunked(model: Model, rays: Rays, chunk: int = 1 << 14, cond=None,
+                        thresholds: Sequence[float] = ()) -> dict:
+    """Render any number of rays in chunks (eval mode, no gradients).
+
+    Args:
+        thresholds: K density thresholds (1/m) for threshold depth, answered in the same pass.
+
+    Returns:
+        A dict of float32 tensors: rgb (R, 3), opacity, depth (expected ray distance), z_depth,
+        median_depth (ray distance) and median_z_depth (R,), metres; with thresholds also
+        threshold_depth (K, R) ray distance and threshold_z_depth (K, R), NaN where the ray never
+        reaches the threshold.
+    """
+    thresholds = as_thresholds(list(thresholds))
+    was_training = model.training
+    if was_training:  # train() walks every submodule: skip it when already in eval mode
+        model.eval()
+    parts: dict[str, list] = {k: [] for k in _IMAGE_KEYS}
+    if thresholds:
+        parts["threshold_depth"], parts["threshold_z_depth"] = [], []
+    try:
+        for i in range(0, len(rays), chunk):
+            sub = rays[i:i + chunk]
+            c = None if cond is None else cond[i:i + chunk]
+            out: RenderOutput = model.render_rays(sub, None, c)
+            for k in ("rgb", "opacity", "depth", "z_depth", "median_depth"):
+                parts[k].append(getattr(out, k).float())
+            parts["median_z_depth"].append((out.median_depth * sub.z_per_t).float())
+            if thresholds:
+                t = torch.stack([threshold_depth(out.sigmas, out.t_starts, out.t_ends,
+                                                 out.ray_indices, len(sub), m)[0].float()
+                                 for m in thresholds])
+                parts["threshold_depth"].append(t)
+                parts["threshold_z_depth"].append(t * sub.z_per_t[None])
+    finally:
+        if was_training:
+            model.train()
+    out = {}
+    for k, v in parts.items():
+        dim = 1 if k.startswith("threshold") else 0
+        out[k] = v[0] if len(v) == 1 else torch.cat(v, dim) if v else torch.zeros(0)
+    return out
+
+
+def render_image(model: Model, cameras: Cameras, index: int, downscale: int = 1,
+                 chunk: int = 1 << 14, cond=None, thresholds: Sequence[float] = (),
+                 supersample: Optional[int] = None) -> dict:
+    """Render camera ``index`` as numpy images: rgb (H, W, 3) in [0, 1], and (H, W) opacity,
+    depth (ray distance, m), z_depth (m), median_depth (ray distance, m), median_z_depth (m);
+    with ``thresholds`` (K values, 1/m) also threshold_depth / threshold_z_depth (K, H, W),
+    NaN where invalid.
+
+    ``supersample`` S (None: the model's :attr:`~nerfbot.models.base.Model.supersample`): rgb and
+    opacity are the means of S x S rays through each pixel (:meth:`Cameras.rays`), as the
+    model was trained to match anti-aliased pixels; the depths always come from the ray
+    through the pixel centre, as a depth camera (and the captures' ground truth) measures
+    them. S > 1 renders S^2 + 1 rays per pixel; pass 1 when only depth is needed."""
+    s = model.supersample if supersample is None else supersample
+    h = int(cameras.height[index]) // downscale
+    w = int(cameras.width[index]) // downscale
+    out = _render_camera_rays(model, cameras.rays(index, downscale), chunk, cond, thresholds)
+    if s > 1:
+        fine = _render_camera_rays(model, cameras.rays(index, downscale, s), chunk, cond, ())
+        for k, shape in (("rgb", (h, s, w, s, 3)), ("opacity", (h, s, w, s))):
+            out[k] = fine[k].reshape(shape).mean((1, 3)).reshape(out[k].shape)
+    img = {k: v.cpu().numpy() for k, v in out.items()}
+    result = {"rgb": img["rgb"].reshape(h, w, 3).clip(0, 1),
+              **{k: img[k].reshape(h, w) for k in _IMAGE_KEYS[1:]}}
+    for k in ("threshold_depth", "threshold_z_depth"):
+        if k in img:
+            result[k] = img[k].reshape(-1, h, w)
+    return result
+
+
+def _render_camera_rays(model: Model, rays: Rays, chunk: int, cond, thresholds) -> dict:
+    """:func:`render_rays_chunked` of one camera's rays; ``cond`` (D,) is that camera's."""
+    if cond is not None:
+        cond = torch.as_tensor(cond, dtype=torch.float32).reshape(1, -1).expand(len(rays), -1)
+    return render_rays_chunked(model, rays.to(model.aabb.device), chunk, cond, thresholds)
+
+
+def sweep_conditions(conditioning, what: str, n: int, base: Optional[Sequence[float]] = None
+                     ) -> list[list[float]]:
+    """``n`` condition vectors sweeping ``what`` ("time", or a joint name) over its whole range
+    (evenly, both ends included), the other values held at ``base`` (default: the middle of
+    their ranges). ValueError naming the choices for an unknown ``what``."""
+    names = list(conditioning.names)
+    if what not in names:
+        raise ValueError(f"cannot sweep {what!r}: this run is conditioned on {names or 'nothing'}")
+    base = list(base) if base is not None else conditioning.vector(0.0, {}) \
+        if conditioning.kind == "time" else conditioning.vector(None, {})
+    k = names.index(what)
+    lo, hi = conditioning.ranges[k]
+    out = []
+    for v in np.linspace(lo, hi, max(int(n), 2)):
+        c = list(base)
+        c[k] = float(v)
+        out.append(c)
+    return out
+
+
+def depth(model: Model, cameras: Cameras, index: int, mode: str = "expected",
+          threshold: Optional[float | Sequence[float]] = None, z: bool = True,
+          downscale: int = 1, cond=None) -> np.ndarray:
+    """Depth map of camera ``index``.
+
+    Args:
+        mode: "expected", "median" or "threshold" (see the module docstring).
+        threshold: density threshold(s) in 1/m, required for mode "threshold"; a sequence gives
+            one map per threshold from a single rendering pass.
+        z: z-depth (distance along the optical axis, the project's default) or, if False, ray
+            distance.
+        downscale: render 1/downscale of the resolution (same field of view).
+
+    Returns:
+        (H, W) float32 metres, or (K, H, W) for K thresholds; NaN where the mode gives no depth
+        (threshold never reached).
+
+    Raises:
+        ValueError: unknown mode, or a threshold missing / not positive.
+    """
+    if mode not in DEPTH_MODES:
+        raise ValueError(f"unknown depth mode {mode!r} (choose from {DEPTH_MODES})")
+    if mode == "threshold":
+        if threshold is None:
+            raise ValueError("depth mode 'threshold' needs threshold=m (density, 1/m)")
+        ms = as_thresholds(threshold)
+        img = render_image(model, cameras, index, downscale, cond=cond, thresholds=ms,
+                           supersample=1)
+        maps = img["threshold_z_depth" if z else "threshold_depth"]
+        return maps[0] if np.isscalar(threshold) else maps
+    img = render_image(model, cameras, index, downscale, cond=cond, supersample=1)
+    key = {("expected", True): "z_depth", ("expected", False): "depth",
+           ("median", True): "median_z_depth", ("median", False): "median_depth"}[(mode, z)]
+    return img[key]

@@ -1,0 +1,75 @@
+"""The settings of one training run (:class:`TrainConfig`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Optional
+
+from nerfbot.methods import get_method
+
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class TrainConfig:
+    method: str = "ngp"
+    """Method name from :data:`nerfbot.methods.METHODS`."""
+    max_steps: Optional[int] = None
+    """Stop after this many optimisation steps (None: no step limit)."""
+    max_seconds: Optional[float] = None
+    """Stop when the training loop has run this long (wall clock; loading, compilation,
+    checkpointing and evaluation excluded). At least one of the two budgets must be set."""
+    seed: int = 0
+    """Seeds parameters, batches and jitter. Runs with a step budget are deterministic on CPU."""
+    lr: Optional[float] = None
+    """Adam learning rate (None: the method's default)."""
+    options: dict = field(default_factory=dict)
+    """Method options (field / model config fields), e.g. {"log2_hashmap_size": 19}."""
+    background: Optional[object] = None
+    """"learned", "white", "black" or an RGB triple; None: what the dataset says."""
+    checkpoint_every_seconds: float = 60.0
+    """Write a checkpoint at least this often (training time; inf: only at the end)."""
+    checkpoint_every_steps: Optional[int] = None
+    """Also write a checkpoint after every step that is a multiple of this (None: no step
+    cadence). Checkpoints at fixed steps make interrupted runs reproducible."""
+    eval_at_seconds: tuple = ()
+    """Training times (s) at which to pause the clock and record test PSNR (a learning curve)."""
+    eval_at_steps: tuple = ()
+    """Steps at which to record test PSNR."""
+    depth_weight: float = 0.0
+    """Depth supervision (as DS-NeRF, for RGB-D captures): weight of the L1 error of the rendered
+    expected z-depth against the dataset's depth maps, in units of the scene cube's diagonal,
+    on training pixels whose depth is finite and inside the bounds. 0 = RGB only."""
+    device: str = "cpu"
+    """torch device; the fast kernels are CPU kernels, other devices use the torch twins
+    (``NERFBOT_KERNELS=torch`` forces the twins on the CPU too: :mod:`nerfbot.kernels`)."""
+    progress: bool = True
+    """Show a progress bar."""
+
+    def validate(self) -> None:
+        recipe = get_method(self.method).baked_from
+        if recipe is not None:
+            raise ValueError(f"method {self.method!r} is baked, not trained: train "
+                             f"--method {recipe.source}, then run `nerfbot bake` on that run")
+        if self.max_steps is None and self.max_seconds is None:
+            raise ValueError("set a training budget: max_steps and/or max_seconds")
+        if self.max_steps is not None and self.max_steps < 0:
+            raise ValueError(f"max_steps must be >= 0, got {self.max_steps}")
+        if self.max_seconds is not None and not self.max_seconds >= 0:
+            raise ValueError(f"max_seconds must be >= 0, got {self.max_seconds}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"seed must be an integer >= 0, got {self.seed!r}")
+        if self.lr is not None and not 0.0 < self.lr < math.inf:
+            raise ValueError(f"lr must be positive and finite, got {self.lr}")
+        if not 0.0 <= self.depth_weight < math.inf:
+            raise ValueError(f"depth_weight must be >= 0 and finite, got {self.depth_weight}")
+        if not self.checkpoint_every_seconds >= 0:
+            raise ValueError(f"checkpoint_every_seconds must be >= 0, got "
+                             f"{self.checkpoint_every_seconds}")
+        if self.checkpoint_every_steps is not None and self.checkpoint_every_steps < 1:
+            raise ValueError(f"checkpoint_every_steps must be >= 1, got "
+                             f"{self.checkpoint_every_steps}")

@@ -1,0 +1,295 @@
+"""The training loop: batches of random pixels, Adam, a decaying learning rate, budgets in
+steps or seconds, durable checkpoints and exact resume (:class:`Trainer`)."""
+
+from __future__ import annotations
+
+import copy
+import logging
+import math
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Callable, Optional
+
+import torch
+from tqdm.auto import tqdm
+
+from nerfbot.data.conditioning import Conditioning, frame_conditions
+from nerfbot.data.dataset import Dataset
+from nerfbot.data.pixels import PixelBank
+from nerfbot.data.run_dataset import run_data_fields
+from nerfbot.data.writers import write_json_atomic
+from nerfbot.methods import get_method
+from nerfbot.models.base import Model, pixel_mean
+from nerfbot.ops.rendering import RenderOutput
+from nerfbot.ops.schedules import learning_rate
+from nerfbot.train.checkpoints import (CHECKPOINT, RESUME_REQUIRED, CheckpointError,
+                                       load_checkpoint, remove_stale_temporaries,
+                                       save_checkpoint)
+from nerfbot.train.config import TrainConfig
+from nerfbot.train.runs import (build_from_spec, canonical_text, first_line, load_model,
+                                load_model_state, model_spec, spec_differences)
+
+
+log = logging.getLogger(__name__)
+
+
+#: Rays of the throwaway step that compiles a method's kernels before the training clock starts.
+WARM_UP_RAYS = 64
+
+
+def warm_up_step(model: Model, bank: "PixelBank", step: int, progress: float) -> None:
+    """One training step's forward and backward pass on a throwaway copy of ``model``, on
+    :data:`WARM_UP_RAYS` rays drawn with a private generator.
+
+    It compiles (or loads from numba's cache) every kernel a step of this method calls and
+    builds torch's first-call state, so none of it counts as training time: on a fresh install,
+    kernels once compiled several seconds into a 30 s budget. The model, its optimiser and the
+    run's random state are untouched, so runs stay deterministic for a seed.
+    """
+    twin = copy.deepcopy(model)
+    generator = torch.Generator().manual_seed(0)
+    twin.before_step(step, generator, progress)
+    loss, _, _ = batch_loss(twin, bank, WARM_UP_RAYS, generator, progress)
+    loss.backward()
+
+
+def batch_loss(model: Model, bank: "PixelBank", n_rays: int, generator: torch.Generator,
+               progress: float) -> tuple[torch.Tensor, RenderOutput, int]:
+    """The loss of a batch of about ``n_rays`` random training rays at ``progress`` of the
+    budget: S x S rays per pixel (S = ``model.training_supersample(progress)``), whose
+    colours the model averages before comparing them with the pixel's (a pixel's colour is the
+    mean over its area, as a renderer's anti-aliasing or a camera's sensor makes it).
+    Returns the loss, the rays' render output and S."""
+    s = model.training_supersample(progress)
+    k = s * s
+    rays, target, slot = bank.sample(max(1, n_rays // k), generator, s)
+    cond = None if bank.conds is None else bank.conds[slot].repeat_interleave(k, 0)
+    return (*model.loss(rays, target, generator, cond, rays_per_pixel=k), s)
+
+
+class Trainer:
+    """Trains one model on one dataset into a run folder.
+
+    The run folder holds ``config.json``, ``checkpoint.pt`` (model, optimiser, random state,
+    step and training time; written durably, the one before kept as ``checkpoint.prev.pt``:
+    :mod:`nerfbot.train.checkpoints`) and ``curve.json`` (test PSNR over time).
+    """
+
+    def __init__(self, dataset: Dataset, out_dir, config: TrainConfig,
+                 evaluate_fn: Optional[Callable[[Model], dict]] = None):
+        config.validate()
+        self.dataset, self.config = dataset, config
+        self.out = Path(out_dir)
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.method = get_method(config.method)
+        self.spec = model_spec(config, dataset)
+        self.device = torch.device(config.device)
+        torch.manual_seed(config.seed)
+        self.model = build_from_spec(self.spec, self.device)
+        self.model.use_run_loader(load_model)
+        self.lr = config.lr if config.lr is not None else self.method.lr
+        self.optimizer = self._make_optimizer()
+        conditioning = Conditioning.from_dict(self.spec["conditioning"])
+        self.bank = PixelBank(dataset, dataset.indices("train"), self.device,
+                              frame_conditions(dataset, conditioning))
+        self.model.init_mean_color(self.bank.mean_color())
+        if config.depth_weight > 0:
+            self.bank.load_depths()
+        aabb = self.model.aabb
+        self.depth_scale = float((aabb[1] - aabb[0]).max()) * math.sqrt(3.0)
+        self.generator = torch.Generator().manual_seed(config.seed)
+        self.step = 0
+        self.train_seconds = 0.0
+        self.n_rays = self.model.rays_for_next_batch(None, 0)
+        self.last_samples: Optional[int] = None
+        self.curve: list[dict] = []
+        self.evaluate_fn = evaluate_fn
+
+    def _make_optimizer(self) -> torch.optim.Optimizer:
+        return torch.optim.Adam(self.model.param_groups(), lr=self.lr, betas=(0.9, 0.99),
+                                eps=self.method.adam_eps)
+
+    # -- state -------------------------------------------------------------------------------
+    def state(self) -> dict:
+        return {"spec": self.spec, "model": self.model.state_dict(),
+                "optimizer": self.optimizer.state_dict(), "step": self.step,
+                "train_seconds": self.train_seconds, "n_rays": self.n_rays,
+                "last_samples": self.last_samples,
+                "generator": self.generator.get_state(), "curve": self.curve,
+                "config": asdict(self.config)}
+
+    def save(self) -> Path:
+        """Write the run's checkpoint durably (:func:`nerfbot.train.checkpoints.save_checkpoint`;
+        the one before is kept as ``checkpoint.prev.pt``) and ``curve.json``."""
+        path = save_checkpoint(self.state(), self.out / CHECKPOINT)
+        write_json_atomic(self.out / "curve.json", self.curve, allow_nan=True)
+        return path
+
+    def load(self, path: Optional[Path] = None) -> bool:
+        """Resume from ``path`` (default: the run's checkpoint; its previous checkpoint when it
+        is missing or damaged); False if there is none.
+
+        The checkpoint's spec is compared with this trainer's first (:func:`spec_differences`):
+        any difference is a ValueError naming the run folder and each field, and nothing is
+        changed, in memory or on disk. Then the model is built from the run's spec, takes the
+        checkpoint's tensors, and stale temporary files of interrupted writes are removed."""
+        path = Path(path) if path else self.out / CHECKPOINT
+        found = load_checkpoint(path, RESUME_REQUIRED)
+        if found is None:
+            return False
+        ckpt, used = found
+        differences = spec_differences(ckpt["spec"], self.spec, self.dataset)
+        if differences:
+            raise ValueError(f"{self.out}: --resume with {'; '.join(differences)}; resume with "
+                             "the run's options or train into a new --out")
+        spec = {**self.spec, **ckpt["spec"], "dataset": self.spec["dataset"]}
+        if canonical_text(spec) != canonical_text(self.spec):  # equal within tolerances: the run's wins
+            self._rebuild_model(spec)
+        load_model_state(self.model, ckpt, used)
+        try:
+            self.optimizer = self._make_optimizer()  # over the (possibly resized) parameters
+            self.optimizer.load_state_dict(ckpt["optimizer"])
+            self.generator.set_state(ckpt["generator"])
+        except (ValueError, RuntimeError, KeyError, TypeError) as err:
+            raise CheckpointError(f"{used}: optimiser or random state does not fit the model: "
+                                  f"{first_line(err)}") from None
+        self.step, self.train_seconds = ckpt["step"], ckpt["train_seconds"]
+        self.n_rays, self.curve = ckpt["n_rays"], ckpt["curve"]
+        self.last_samples = ckpt["last_samples"]
+        remove_stale_temporaries(path)
+        return True
+
+    def _rebuild_model(self, spec: dict) -> None:
+        """Build the model from ``spec`` as :meth:`__init__` does (the optimiser is left to
+        the caller)."""
+        self.spec = spec
+        torch.manual_seed(spec["seed"])
+        self.model = build_from_spec(spec, self.device)
+        self.model.use_run_loader(load_model)
+        self.model.init_mean_color(self.bank.mean_color())
+        aabb = self.model.aabb
+        self.depth_scale = float((aabb[1] - aabb[0]).max()) * math.sqrt(3.0)
+
+    # -- loop --------------------------------------------------------------------------------
+    def progress(self) -> float:
+        c = self.config
+        p = 0.0
+        if c.max_steps:
+            p = max(p, self.step / c.max_steps)
+        if c.max_seconds:
+            p = max(p, self.train_seconds / c.max_seconds)
+        return p
+
+    def done(self) -> bool:
+        c = self.config
+        return ((c.max_steps is not None and self.step >= c.max_steps)
+                or (c.max_seconds is not None and self.train_seconds >= c.max_seconds))
+
+    def _record(self) -> None:
+        if self.evaluate_fn is None:
+            return
+        self.model.eval()
+        metrics = self.evaluate_fn(self.model)
+        self.model.train()
+        entry = {"step": self.step, "train_seconds": round(self.train_seconds, 3), **metrics}
+        self.curve.append(entry)
+        log.info("eval at %.1fs / step %d: %s", self.train_seconds, self.step, metrics)
+
+    def _check_finite_parameters(self) -> None:
+        """Raise FloatingPointError if any parameter is NaN or inf. The loss check of every step
+        catches a diverged model one step late; this catches the last step, before saving."""
+        bad = [name for name, p in self.model.named_parameters() if not torch.isfinite(p).all()]
+        if bad:
+            raise FloatingPointError(
+                f"non-finite parameters after step {self.step} ({', '.join(bad[:3])}); lower the "
+                f"learning rate (now {self.optimizer.param_groups[0]['lr']:.2e})")
+
+    def _depth_loss(self, out, supersample: int) -> torch.Tensor:
+        """Mean L1 error of the expected z-depth of the last batch (with ``supersample`` squared
+        rays per pixel, their mean), on its pixels with a valid depth, in cube diagonals (0 when
+        none has one)."""
+        gt = self.bank.depths[self.bank.last_pixels]
+        z = pixel_mean(out.z_depth, supersample ** 2)
+        valid = torch.isfinite(gt)
+        if not bool(valid.any()):
+            return z.sum() * 0.0
+        return (z[valid] - gt[valid]).abs().mean() / self.depth_scale
+
+    def train(self, on_step: Optional[Callable[["Trainer"], None]] = None) -> dict:
+        """Run until a budget is spent. ``on_step(trainer)`` is called after every step (tests
+        use it to simulate interruptions). On KeyboardInterrupt a checkpoint is written first."""
+        c = self.config
+        remove_stale_temporaries(self.out / CHECKPOINT)
+        warm_up_step(self.model, self.bank, self.step, self.progress())
+        write_json_atomic(self.out / "config.json", {
+            "train": asdict(c), **run_data_fields(self.dataset.root, self.out),
+            "spec": self.spec}, allow_nan=True)
+        pending_t = sorted(s for s in c.eval_at_seconds if s > self.train_seconds)
+        pending_s = sorted(s for s in c.eval_at_steps if s > self.step)
+        total = c.max_steps if c.max_steps is not None else None
+        bar = tqdm(total=total, initial=self.step, disable=not c.progress, unit="step",
+                   desc=f"train {c.method}", dynamic_ncols=True)
+        last_ckpt = self.train_seconds
+        loss_ema = None
+        self.model.train()
+        try:
+            while not self.done():
+                t0 = time.perf_counter()
+                progress = self.progress()
+                upkeep = self.model.before_step(self.step, self.generator, progress)
+                if upkeep.pop("params_changed", False):
+                    self.optimizer = self._make_optimizer()
+                lr = learning_rate(self.lr, self.method.lr_final_factor, progress)
+                for group in self.optimizer.param_groups:
+                    group["lr"] = lr * group["lr_scale"]
+                self.n_rays = self.model.rays_for_next_batch(self.last_samples, self.n_rays)
+                loss, out, supersample = batch_loss(
+                    self.model, self.bank, self.n_rays, self.generator, progress)
+                if c.depth_weight > 0:
+                    loss = loss + c.depth_weight * self._depth_loss(out, supersample)
+                self.optimizer.zero_grad(set_to_none=True)
+                if not torch.isfinite(loss):
+                    raise FloatingPointError(
+                        f"non-finite training loss at step {self.step}; lower the learning rate "
+                        f"(now {self.optimizer.param_groups[0]['lr']:.2e})")
+                loss.backward()
+                self.optimizer.step()
+                self.step += 1
+                self.last_samples = out.num_samples
+                self.train_seconds += time.perf_counter() - t0
+                loss_v = loss.detach().item()
+                loss_ema = loss_v if loss_ema is None else 0.9 * loss_ema + 0.1 * loss_v
+                bar.update(1)
+                if self.step % 10 == 0 or self.done():
+                    post = {"loss": f"{loss_ema:.4f}",
+                            "psnr": f"{-10 * math.log10(max(loss_ema, 1e-10)):.2f}",
+                            "rays": self.n_rays,
+                            "spr": f"{out.num_samples / max(self.n_rays, 1):.1f}",
+                            "t": f"{self.train_seconds:.0f}s"}
+                    if "occupied" in upkeep:
+                        post["occ"] = f"{upkeep['occupied']:.3f}"
+                    bar.set_postfix(post, refresh=False)
+                if on_step is not None:
+                    on_step(self)
+                due = bool(pending_t and self.train_seconds >= pending_t[0]) or \
+                    bool(pending_s and self.step >= pending_s[0])
+                pending_t = [s for s in pending_t if s > self.train_seconds]
+                pending_s = [s for s in pending_s if s > self.step]
+                if due:  # one record even when a slow step passed several requested times
+                    self._record()
+                every = c.checkpoint_every_steps
+                if not self.done() and (self.train_seconds - last_ckpt >= c.checkpoint_every_seconds
+                                        or (every is not None and self.step % every == 0)):
+                    self.save()  # the last one is written after the loop
+                    last_ckpt = self.train_seconds
+        except KeyboardInterrupt:
+            bar.close()
+            path = self.save()
+            log.warning("interrupted at step %d; checkpoint %s (resume with --resume)", self.step, path)
+            raise
+        bar.close()
+        self._check_finite_parameters()
+        self.save()
+        return {"steps": self.step, "train_seconds": self.train_seconds,
+                "steps_per_second": self.step / max(self.train_seconds, 1e-9)}
