@@ -138,12 +138,14 @@ def _apply(config, options: dict):
 
 
 # -- build functions ---------------------------------------------------------------------------
-def occupancy_build(field_cls) -> Callable[..., Model]:
+def occupancy_build(field_cls, contractible: bool = False) -> Callable[..., Model]:
     """Build function of a static field, ``field_cls(aabb, field config, seed=seed)``, marched
-    over an occupancy grid; its entry's configs are (field config, OccupancyModelConfig)."""
+    over an occupancy grid; its entry's configs are (field config, OccupancyModelConfig).
+    A ``contractible`` field also takes ``contract=`` (the renderer's ``contraction``)."""
     def build(aabb, background, configs, seed, conditioning) -> Model:
         field_config, renderer = configs
-        return OccupancyModel(field_cls(aabb, field_config, seed=seed),
+        extra = {"contract": renderer.contraction} if contractible else {}
+        return OccupancyModel(field_cls(aabb, field_config, seed=seed, **extra),
                               make_background(background), aabb, renderer)
     return build
 
@@ -201,18 +203,19 @@ def _bake_plenoctree_octree(model, spec, dataset, configs, seed, progress):
 # -- defaults shared by several entries --------------------------------------------------------
 #: ngp's own renderer defaults: 2 x 2 rays per pixel from half the budget on. On the tabletop in
 #: 180 s: +1.2 dB test PSNR and the objects' depth error 2.80 -> 2.0-2.4 cm; from the start, the
-#: large box of a capture without a manifest lost 2 dB (BENCHMARKS.md, issue 2, session 10).
-#: Log-density noise 1.0: uniformly coloured objects become surfaces instead of veils
-#: (BENCHMARKS.md, issue 2, session 12). 2^15 samples per step, not 2^17: on a CPU a time
-#: budget buys few steps, and small objects need steps more than large batches (180 s on the
-#: tabletop: 1183 steps, 35.8 dB, objects 0.9 cm, against 439 steps, 33.6 dB, 2.0 cm; session 13).
+#: large box of a capture without a manifest lost 2 dB. Log-density noise 1.0: uniformly
+#: coloured objects become surfaces instead of veils (whole-scene depth error 1.3 -> 1.0 cm in
+#: 180 s). 2^15 samples per step, not 2^17: on a CPU a time budget buys few steps, and small
+#: objects need steps more than large batches (180 s on the tabletop: 1183 steps, 35.8 dB,
+#: objects 0.9 cm, against 439 steps, 33.6 dB, 2.0 cm). The current figures: BENCHMARKS.md,
+#: section 1.
 NGP_RENDERER = OccupancyModelConfig(supersample=2, supersample_from=0.5, density_noise=1.0,
                                     samples_per_batch=1 << 15)
 
 #: The renderer defaults of the conditioned ngp family (tnerf, dnerf, articulated) differ from
 #: ngp's in exactly these four values (tests/test_registry.py holds them to it): one ray per
 #: pixel throughout, no log-density noise, 2^17 samples per step. Their results in
-#: BENCHMARKS.md (issue 5) were measured with these; whether ngp's values help them is
+#: BENCHMARKS.md (section 4) were measured with these; whether ngp's values help them is
 #: unmeasured.
 CONDITIONED_NGP_RENDERER = OccupancyModelConfig(supersample=1, supersample_from=0.0,
                                                 density_noise=0.0, samples_per_batch=1 << 17)
@@ -274,7 +277,7 @@ def register_method(name: str, spec: MethodSpec) -> MethodSpec:
 
 
 register_method("ngp", MethodSpec(
-    occupancy_build(NGPField), lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
+    occupancy_build(NGPField, contractible=True), lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
     configs=(NGPFieldConfig(), NGP_RENDERER)))
 register_method("plenoxels", MethodSpec(
     occupancy_build(PlenoxelField), lr=1e-1, adam_eps=1e-15, lr_final_factor=0.1,

@@ -4,7 +4,8 @@ The ``nerfbot`` CLI calls :func:`add_capture_arguments` on its ``capture`` sub-p
 :func:`run_capture` on the parsed arguments.
 
 The scene decides the kind of capture (:func:`sims.sequence.capture_kind`): static scenes take
-the ``hemisphere`` / ``orbit`` / ``explicit`` rigs (:mod:`sims.capture`); ``dynamic`` scenes a
+the ``hemisphere`` / ``orbit`` / ``inside`` / ``explicit`` rigs (:mod:`sims.capture`; without
+``--rig``, the scene's declared default, e.g. ``inside`` for ``room``); ``dynamic`` scenes a
 ``monocular`` or ``multiview`` rig over ``--frames`` time steps (:mod:`sims.dynamic`);
 ``articulated`` scenes ``--configs`` joint configurations seen by ``--views-per-frame`` views
 each (:mod:`sims.articulated`). Options of one kind given to another are errors.
@@ -96,8 +97,9 @@ def add_capture_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentP
                         metavar="N",
                         help="image size: N (square) or W H, pixels (default 128)")
     parser.add_argument("--rig", choices=RIG_KINDS + SEQUENCE_RIGS, default=None,
-                        help="camera rig: hemisphere, orbit or explicit for static scenes "
-                             "(default hemisphere); monocular (one view per time step or "
+                        help="camera rig: hemisphere, orbit, inside (cameras standing in a "
+                             "room) or explicit for static scenes (default: the scene's, else "
+                             "hemisphere); monocular (one view per time step or "
                              "configuration) or multiview (--views-per-frame views each) for "
                              "dynamic (default monocular) and articulated (default multiview) "
                              "scenes")
@@ -111,8 +113,8 @@ def add_capture_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentP
                         metavar=("X", "Y", "Z"),
                         help="look-at point, world metres (default: the scene's)")
     parser.add_argument("--elevation-range", type=_DEGREES_OF_ELEVATION, nargs=2,
-                        default=(15.0, 70.0),
-                        metavar=("LO", "HI"), help="hemisphere elevations, degrees (15 70)")
+                        default=None, metavar=("LO", "HI"),
+                        help="hemisphere elevations, degrees (default: the scene's, else 15 70)")
     parser.add_argument("--elevation", type=_DEGREES_OF_ELEVATION, default=30.0,
                         help="orbit elevation, degrees (default 30)")
     parser.add_argument("--target-jitter", type=_real(0.0, math.inf, open_low=False), default=0.0,
@@ -165,7 +167,7 @@ def add_capture_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentP
 
 def rigs_from_args(args: argparse.Namespace) -> tuple[RigConfig, RigConfig | None]:
     """(train rig, test rig or None) from parsed capture arguments; ValueError if inconsistent."""
-    kind = args.rig or "hemisphere"
+    kind = args.rig                      # None: the scene's default rig (sims.rigs.default_rig)
     explicit = kind == "explicit"
     if explicit and args.poses is None:
         raise ValueError("--rig explicit needs --poses FILE")
@@ -176,11 +178,16 @@ def rigs_from_args(args: argparse.Namespace) -> tuple[RigConfig, RigConfig | Non
     rig = default_rig(args.scene, kind=kind, count=views, width=width, height=height,
                       fov_deg=args.fov, radius=args.radius,
                       target=tuple(args.target) if args.target else None,
-                      elevation_range=tuple(args.elevation_range), elevation=args.elevation,
+                      elevation_range=_pair(args.elevation_range), elevation=args.elevation,
                       target_jitter=args.target_jitter, seed=args.seed, poses_file=args.poses)
     if explicit:
         return rig, make_test_rig(rig, test_views)
     return rig, (make_test_rig(rig, test_views) if test_views > 0 else None)
+
+
+def _pair(values) -> tuple[float, float] | None:
+    """A two-number option as a tuple (None when not given)."""
+    return tuple(values) if values is not None else None
 
 
 def sensor_from_arg(scene, mode: str, seed: int = 0) -> DepthSensorModel | None:
@@ -240,7 +247,7 @@ def sequence_rig_from_args(args: argparse.Namespace, rig: str):
     k = 1 if rig == "monocular" else (args.views_per_frame or DEFAULT_VIEWS_PER_FRAME)
     return sequence_rig(args.scene, rig, views_per_step=k, size=args.size, fov_deg=args.fov,
                         radius=args.radius, target=tuple(args.target) if args.target else None,
-                        elevation_range=tuple(args.elevation_range),
+                        elevation_range=_pair(args.elevation_range),
                         camera_path=args.camera_path, seed=args.seed)
 
 

@@ -15,6 +15,11 @@ top-level ``scene``):
   (added by the capture, which sees the segmentation; absent from manifests of other origins).
 - ``geoms``: {geom id (as a string): name} for reading segmentation images; unnamed geoms are
   called ``geom_<id>``.
+- ``objects``: the geoms the MJCF declares as objects (:func:`declared_objects`).
+- ``obstacles`` (only for scenes that declare them, e.g. the ``room`` family):
+  {geom name: [[xmin, ymin, zmin], [xmax, ymax, zmax]]}, the world AABBs, metres, of the geoms a
+  mobile robot must not drive into (:func:`declared_obstacles`); a planner reads footprints from
+  the x-y extent and clearance from zmin (a low robot may pass under a table top).
 
 "Rendered" is decided by MuJoCo itself: the geoms ``mjv_updateScene`` emits with the capture's
 visualisation options (:func:`sims.camera.capture_scene_option`), which applies geom groups,
@@ -23,7 +28,7 @@ alpha = 0 and the material / geom rgba precedence exactly as the images do.
 
 from __future__ import annotations
 
-from typing import Iterable
+from typing import Iterable, Optional
 
 import mujoco
 import numpy as np
@@ -67,8 +72,14 @@ def is_infinite_plane(model: mujoco.MjModel, gid: int) -> bool:
 
 
 def geom_world_aabb(model: mujoco.MjModel, data: mujoco.MjData, gid: int) -> np.ndarray:
-    """(2, 3) world AABB of geom ``gid``: all 8 corners of its local ``geom_aabb`` box."""
-    local = model.geom_aabb[gid]
+    """(2, 3) world AABB of geom ``gid``: all 8 corners of its local ``geom_aabb`` box.
+
+    A finite plane is bounded by its rectangle: MuJoCo's ``geom_aabb`` gives planes an infinite
+    depth below their surface.
+    """
+    local = model.geom_aabb[gid].copy()
+    if model.geom_type[gid] == mujoco.mjtGeom.mjGEOM_PLANE:
+        local[:] = (0.0, 0.0, 0.0, model.geom_size[gid, 0], model.geom_size[gid, 1], 0.0)
     corners = local[:3] + _CORNERS * local[3:]
     world = corners @ data.geom_xmat[gid].reshape(3, 3).T + data.geom_xpos[gid]
     return np.stack([world.min(axis=0), world.max(axis=0)])
@@ -100,7 +111,7 @@ def scene_manifest(model: mujoco.MjModel, data: mujoco.MjData, name: str, source
     specular = any(g.specular > SPECULAR_THRESHOLD or g.reflectance > 0.0 for g in drawn)
     shiny = sorted({int(g.objid) for g in drawn
                     if g.specular > SPECULAR_THRESHOLD or g.reflectance > SHINY_REFLECTANCE})
-    return {
+    manifest = {
         "name": str(name),
         "source": str(source),
         "bounds": bounds.tolist(),
@@ -112,6 +123,39 @@ def scene_manifest(model: mujoco.MjModel, data: mujoco.MjData, name: str, source
         "geoms": {str(g): geom_name(model, g) for g in range(model.ngeom)},
         "objects": declared_objects(model),
     }
+    obstacles = declared_obstacles(model, data)
+    if obstacles:
+        manifest["obstacles"] = {name: box.tolist() for name, box in obstacles.items()}
+    return manifest
+
+
+def custom_text(model: mujoco.MjModel, name: str) -> Optional[str]:
+    """The ``<custom><text name=NAME data=.../>`` string of the model, or None."""
+    tid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_TEXT, name)
+    if tid < 0:
+        return None
+    adr, size = int(model.text_adr[tid]), int(model.text_size[tid])
+    return bytes(model.text_data[adr:adr + size]).decode().rstrip("\x00").strip()
+
+
+def custom_numeric(model: mujoco.MjModel, name: str) -> Optional[list[float]]:
+    """The ``<custom><numeric name=NAME data=.../>`` values of the model, or None."""
+    nid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_NUMERIC, name)
+    if nid < 0:
+        return None
+    adr, size = int(model.numeric_adr[nid]), int(model.numeric_size[nid])
+    return [float(v) for v in model.numeric_data[adr:adr + size]]
+
+
+def _declared_geoms(model: mujoco.MjModel, text_name: str) -> list[str]:
+    """Geom names listed in ``<custom><text name=TEXT_NAME>`` (in order; [] when absent).
+    ValueError naming the unknown geom if the list names a geom the model lacks."""
+    names = (custom_text(model, text_name) or "").split()
+    for name in names:
+        if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, name) < 0:
+            raise ValueError(f"<custom> text {text_name} names geom {name!r}, "
+                             "which the model does not have")
+    return names
 
 
 def declared_objects(model: mujoco.MjModel) -> list[str]:
@@ -120,13 +164,15 @@ def declared_objects(model: mujoco.MjModel) -> list[str]:
 
     Raises ValueError naming the unknown geom if the list names a geom the model lacks.
     """
-    tid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_TEXT, "nerfbot_objects")
-    if tid < 0:
-        return []
-    adr, size = int(model.text_adr[tid]), int(model.text_size[tid])
-    names = bytes(model.text_data[adr:adr + size]).decode().rstrip("\x00").split()
-    for name in names:
-        if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, name) < 0:
-            raise ValueError(f"<custom> text nerfbot_objects names geom {name!r}, "
-                             "which the model does not have")
-    return names
+    return _declared_geoms(model, "nerfbot_objects")
+
+
+def declared_obstacles(model: mujoco.MjModel, data: mujoco.MjData) -> dict[str, np.ndarray]:
+    """{geom name: (2, 3) world AABB, metres} of the geoms the MJCF declares as obstacles to a
+    mobile robot (``<custom><text name="nerfbot_obstacles" data="geom names"/>``), in declared
+    order; {} when it declares none. ``mj_forward`` must have run on ``data``.
+
+    Raises ValueError naming the unknown geom if the list names a geom the model lacks.
+    """
+    return {name: geom_world_aabb(model, data, model.geom(name).id)
+            for name in _declared_geoms(model, "nerfbot_obstacles")}

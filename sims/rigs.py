@@ -1,20 +1,33 @@
 """Camera rigs: where the capture cameras go, as lists of c2w poses (OpenGL convention, metres).
 
-Three kinds, all described by one :class:`RigConfig`:
+Four kinds, all described by one :class:`RigConfig`:
 
 - ``hemisphere``: random views on the upper hemisphere around ``target`` (uniform over the sphere
   area between two elevations), seeded; optional random jitter of the look-at point.
 - ``orbit``: a ring at one elevation with evenly spaced azimuths.
+- ``inside``: cameras standing inside a scene (a room) looking around: positions uniform over
+  the free part of a floor ``region`` (at least ``clearance`` from its edges and from the
+  ``keep_out`` footprints), heights uniform in ``height_range``, random yaw, small random pitch
+  in ``pitch_range``; seeded.
 - ``explicit``: poses read from a JSON file (4x4 matrices or eye/target pairs).
 
 Test views come from the same distribution as training views but never coincide with them:
-``hemisphere`` draws them from an independent random stream, ``orbit`` shifts the ring by half a
-training step, ``explicit`` takes the file's ``"test"`` list (or the entries after the training
-ones). Build them with :func:`make_test_rig`.
+``hemisphere`` and ``inside`` draw them from an independent random stream, ``orbit`` shifts the
+ring by half a training step, ``explicit`` takes the file's ``"test"`` list (or the entries
+after the training ones). Build them with :func:`make_test_rig`.
 
-Every camera keeps world z up (no roll). A scene may declare its default framing in MJCF
-``<custom>`` numerics ``nerfbot_rig_target`` (3), ``nerfbot_rig_radius`` and ``nerfbot_rig_fovy``
-(degrees); :func:`scene_rig_defaults` reads them, or derives a framing from the content bounds.
+Every camera keeps world z up (no roll). A scene may declare its default rig in its MJCF
+``<custom>`` block; :func:`scene_rig_defaults` reads it, or derives a framing from the content
+bounds:
+
+- numerics ``nerfbot_rig_target`` (3), ``nerfbot_rig_radius`` (metres), ``nerfbot_rig_fovy``
+  (degrees) and ``nerfbot_rig_elevation`` (LO HI degrees, the hemisphere's band);
+- text ``nerfbot_rig_kind``: the default kind (``hemisphere`` when undeclared);
+- for ``inside``: numerics ``nerfbot_rig_region`` (xmin ymin xmax ymax, metres; default the
+  content bounds), ``nerfbot_rig_heights`` (LO HI metres), ``nerfbot_rig_pitch`` (LO HI
+  degrees) and ``nerfbot_rig_clearance`` (metres); the ``keep_out`` footprints are the x-y
+  extents of the geoms the scene declares as obstacles (``nerfbot_obstacles``, see
+  :func:`sims.manifest.declared_obstacles`).
 """
 
 from __future__ import annotations
@@ -29,10 +42,14 @@ import mujoco
 import numpy as np
 
 from nerfbot.ops.cameras import check_pose, look_at, spherical_eye
-from sims.manifest import content_bounds, rendered_geoms
+from sims.manifest import (content_bounds, custom_numeric, custom_text, declared_obstacles,
+                           rendered_geoms)
 from sims.scene import load_model
 
-RIG_KINDS = ("hemisphere", "orbit", "explicit")
+RIG_KINDS = ("hemisphere", "orbit", "inside", "explicit")
+#: Random draws per camera of the ``inside`` rig before it gives up (the free floor is too
+#: small or missing).
+INSIDE_TRIES = 10000
 
 # Defaults of the built-in tabletop scene (also written in its MJCF <custom> block).
 TABLETOP_TARGET = (0.0, 0.0, 0.75)
@@ -56,9 +73,15 @@ class RigConfig:
         azimuth_offset_deg: azimuth of the first orbit view, degrees from world +x.
         target_jitter: half-width (metres) of a uniform box around ``target`` from which each
             hemisphere view draws its own look-at point; 0 = always look at ``target``.
-        seed: random seed (hemisphere).
-        split: "train" or "test"; selects the random stream (hemisphere) or the file's list
-            (explicit).
+        region: inside: (xmin, ymin, xmax, ymax), metres, the floor area cameras stand on.
+        height_range: inside: (low, high) camera heights, metres (world z).
+        pitch_range: inside: (low, high) degrees above the horizontal the cameras look.
+        clearance: inside: metres every camera keeps from the region's edges and from the
+            ``keep_out`` footprints.
+        keep_out: inside: footprints (xmin, ymin, xmax, ymax), metres, no camera stands over.
+        seed: random seed (hemisphere, inside).
+        split: "train" or "test"; selects the random stream (hemisphere, inside) or the file's
+            list (explicit).
         poses_file: JSON file of the explicit rig.
         skip: explicit rig, flat-list files: number of entries before this split's first pose.
     """
@@ -74,6 +97,11 @@ class RigConfig:
     elevation: float = 30.0
     azimuth_offset_deg: float = 0.0
     target_jitter: float = 0.0
+    region: Optional[tuple[float, float, float, float]] = None
+    height_range: tuple[float, float] = (0.4, 1.6)
+    pitch_range: tuple[float, float] = (-20.0, 10.0)
+    clearance: float = 0.3
+    keep_out: tuple[tuple[float, float, float, float], ...] = ()
     seed: int = 0
     split: str = "train"
     poses_file: Optional[Path] = None
@@ -88,7 +116,7 @@ class RigConfig:
             raise ValueError(f"image size must be positive, got {self.width}x{self.height}")
         if not 0.0 < self.fov_deg < 180.0:
             raise ValueError(f"vertical fov must be in (0, 180) degrees, got {self.fov_deg}")
-        if self.kind != "explicit" and not self.radius > 0.0:
+        if self.kind not in ("explicit", "inside") and not self.radius > 0.0:
             raise ValueError(f"rig radius must be positive, got {self.radius}")
         lo, hi = self.elevation_range
         if not -90.0 <= lo <= hi <= 90.0:
@@ -98,6 +126,29 @@ class RigConfig:
         self.target = tuple(float(v) for v in self.target)
         if len(self.target) != 3:
             raise ValueError(f"target must have 3 coordinates, got {self.target}")
+        if self.kind == "inside":
+            self._check_inside()
+
+    def _check_inside(self) -> None:
+        if self.region is None:
+            raise ValueError("the inside rig needs a floor region (xmin, ymin, xmax, ymax)")
+        self.region = tuple(float(v) for v in self.region)
+        if len(self.region) != 4 or not (self.region[0] < self.region[2]
+                                         and self.region[1] < self.region[3]):
+            raise ValueError(f"inside rig region must be (xmin, ymin, xmax, ymax) with "
+                             f"xmin < xmax and ymin < ymax, got {self.region}")
+        lo, hi = self.height_range
+        if not lo <= hi:
+            raise ValueError(f"inside rig heights must satisfy low <= high, got {lo}, {hi}")
+        lo, hi = self.pitch_range
+        if not -90.0 < lo <= hi < 90.0:
+            raise ValueError(f"inside rig pitch must satisfy -90 < low <= high < 90 degrees, "
+                             f"got {lo}, {hi}")
+        if not self.clearance >= 0.0:
+            raise ValueError(f"inside rig clearance must be >= 0, got {self.clearance}")
+        self.keep_out = tuple(tuple(float(v) for v in box) for box in self.keep_out)
+        if any(len(box) != 4 for box in self.keep_out):
+            raise ValueError("inside rig keep_out boxes must be (xmin, ymin, xmax, ymax)")
 
     @property
     def size(self) -> tuple[int, int]:
@@ -117,14 +168,17 @@ def parse_size(size: int | Sequence[int]) -> tuple[int, int]:
     raise ValueError(f"size must be N or (W, H), got {size}")
 
 
-def hemisphere_poses(cfg: RigConfig) -> list[np.ndarray]:
-    """``cfg.count`` random c2w (4, 4) poses, uniform over the sphere band of ``elevation_range``.
-
-    The random stream is ``numpy.random.default_rng([seed, split_index])``, so train and test
-    draws are independent and each is reproducible.
-    """
+def _split_rng(cfg: RigConfig) -> np.random.Generator:
+    """``numpy.random.default_rng([seed, split_index])``: train and test draws are independent
+    and each is reproducible."""
     stream = {"train": 0, "test": 1, "val": 2}.get(cfg.split, 3)
-    rng = np.random.default_rng([int(cfg.seed), stream])
+    return np.random.default_rng([int(cfg.seed), stream])
+
+
+def hemisphere_poses(cfg: RigConfig) -> list[np.ndarray]:
+    """``cfg.count`` random c2w (4, 4) poses, uniform over the sphere band of ``elevation_range``
+    (random stream: :func:`_split_rng`)."""
+    rng = _split_rng(cfg)
     lo, hi = (math.radians(v) for v in cfg.elevation_range)
     sin_el = rng.uniform(math.sin(lo), math.sin(hi), cfg.count)  # uniform in area
     az = rng.uniform(0.0, 360.0, cfg.count)
@@ -143,6 +197,49 @@ def orbit_poses(cfg: RigConfig) -> list[np.ndarray]:
     return [look_at(spherical_eye(cfg.target, cfg.radius, cfg.azimuth_offset_deg + i * step,
                                   cfg.elevation), cfg.target)
             for i in range(cfg.count)]
+
+
+def distance_to_box(box: Sequence[float], x: float, y: float) -> float:
+    """Distance (metres) from (x, y) to the box (xmin, ymin, xmax, ymax); 0 inside it."""
+    dx = max(box[0] - x, 0.0, x - box[2])
+    dy = max(box[1] - y, 0.0, y - box[3])
+    return math.hypot(dx, dy)
+
+
+def inside_poses(cfg: RigConfig) -> list[np.ndarray]:
+    """``cfg.count`` c2w (4, 4) poses of cameras standing in ``cfg.region``: (x, y) uniform over
+    the region shrunk by ``clearance`` and farther than ``clearance`` from every ``keep_out``
+    box (rejection sampling), height uniform in ``height_range``, yaw uniform, pitch uniform in
+    ``pitch_range`` (random stream: :func:`_split_rng`).
+
+    Raises:
+        ValueError: no free floor found for a camera within :data:`INSIDE_TRIES` draws.
+    """
+    rng = _split_rng(cfg)
+    c = cfg.clearance
+    xmin, ymin, xmax, ymax = cfg.region
+    xmin, ymin, xmax, ymax = xmin + c, ymin + c, xmax - c, ymax - c
+    if not (xmin < xmax and ymin < ymax):
+        raise ValueError(f"inside rig: the region {cfg.region} leaves no floor {c:g} m from "
+                         "its edges")
+    poses = []
+    for i in range(cfg.count):
+        for _ in range(INSIDE_TRIES):
+            x, y = float(rng.uniform(xmin, xmax)), float(rng.uniform(ymin, ymax))
+            if all(distance_to_box(box, x, y) >= c for box in cfg.keep_out):
+                break
+        else:
+            raise ValueError(f"inside rig: no free floor for camera {i} in {INSIDE_TRIES} draws "
+                             f"(region {cfg.region}, {len(cfg.keep_out)} keep-out boxes, "
+                             f"clearance {c:g} m)")
+        z = float(rng.uniform(*cfg.height_range))
+        yaw = math.radians(float(rng.uniform(0.0, 360.0)))
+        pitch = math.radians(float(rng.uniform(*cfg.pitch_range)))
+        eye = np.array([x, y, z])
+        ahead = np.array([math.cos(pitch) * math.cos(yaw), math.cos(pitch) * math.sin(yaw),
+                          math.sin(pitch)])
+        poses.append(look_at(eye, eye + ahead))
+    return poses
 
 
 def _pose_from_entry(entry, where: str) -> np.ndarray:
@@ -232,14 +329,16 @@ def rig_poses(cfg: RigConfig) -> list[np.ndarray]:
         return hemisphere_poses(cfg)
     if cfg.kind == "orbit":
         return orbit_poses(cfg)
+    if cfg.kind == "inside":
+        return inside_poses(cfg)
     return explicit_poses(cfg)
 
 
 def make_test_rig(train: RigConfig, count: int) -> RigConfig:
     """The rig of ``count`` test views matching ``train``: same distribution, disjoint draws.
 
-    hemisphere: independent random stream; orbit: azimuths shifted by half a training step;
-    explicit: the file's "test" list, or the flat list's entries after the training ones.
+    hemisphere, inside: independent random stream; orbit: azimuths shifted by half a training
+    step; explicit: the file's "test" list, or the flat list's entries after the training ones.
     """
     offset = train.azimuth_offset_deg
     if train.kind == "orbit":
@@ -254,20 +353,26 @@ def make_test_rig(train: RigConfig, count: int) -> RigConfig:
     return replace(train, count=count, split="test", azimuth_offset_deg=offset, skip=skip)
 
 
-def scene_rig_defaults(model, bounds: Optional[np.ndarray] = None) -> dict:
-    """Default ``target``, ``radius`` and ``fov_deg`` for a scene.
+def scene_rig_defaults(model, bounds: Optional[np.ndarray] = None,
+                       data: Optional[mujoco.MjData] = None) -> dict:
+    """Default :class:`RigConfig` fields for a scene: ``target``, ``radius`` and ``fov_deg``,
+    plus ``elevation_range``, ``kind`` and the ``inside`` fields where the scene declares them.
 
-    Uses the model's ``<custom>`` numerics ``nerfbot_rig_target`` / ``nerfbot_rig_radius`` /
-    ``nerfbot_rig_fovy`` where present. Otherwise: target = centre of ``bounds`` (2, 3), fov
-    30 degrees, radius so the bounding sphere fits the vertical fov with 10 % margin.
+    Uses the model's ``<custom>`` declarations (see the module docstring) where present.
+    Otherwise: target = centre of ``bounds`` (2, 3), fov 30 degrees, radius so the bounding
+    sphere fits the vertical fov with 10 % margin. A scene whose default kind is ``inside``
+    also gets ``region``, ``height_range``, ``pitch_range``, ``clearance`` and ``keep_out``
+    (:func:`inside_defaults`; ``data``, from ``mj_forward``, places its obstacles, and is made
+    when None).
+
+    Raises:
+        ValueError: a malformed declaration, naming it.
     """
     found = {}
     for key, name in (("target", "nerfbot_rig_target"), ("radius", "nerfbot_rig_radius"),
                       ("fov_deg", "nerfbot_rig_fovy")):
-        nid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_NUMERIC, name)
-        if nid >= 0:
-            adr, size = int(model.numeric_adr[nid]), int(model.numeric_size[nid])
-            vals = [float(v) for v in model.numeric_data[adr:adr + size]]
+        vals = custom_numeric(model, name)
+        if vals is not None:
             found[key] = tuple(vals) if key == "target" else vals[0]
     fov = found.get("fov_deg", TABLETOP_FOVY)
     if bounds is not None and ("target" not in found or "radius" not in found):
@@ -278,18 +383,79 @@ def scene_rig_defaults(model, bounds: Optional[np.ndarray] = None) -> dict:
     found.setdefault("target", TABLETOP_TARGET)
     found.setdefault("radius", TABLETOP_RADIUS)
     found["fov_deg"] = fov
+    elevation = _declared_pair(model, "nerfbot_rig_elevation")
+    if elevation is not None:
+        found["elevation_range"] = elevation
+    kind = custom_text(model, "nerfbot_rig_kind")
+    if kind is not None:
+        if kind not in RIG_KINDS or kind == "explicit":
+            raise ValueError(f"<custom> text nerfbot_rig_kind must be one of "
+                             f"{', '.join(k for k in RIG_KINDS if k != 'explicit')}, got {kind!r}")
+        found["kind"] = kind
+        if kind == "inside":
+            found.update(inside_defaults(model, bounds, data))
     return found
 
 
-def default_rig(scene: str | Path, **overrides) -> RigConfig:
-    """A rig framed for ``scene``: its declared or bounds-derived target/radius/fov + overrides.
+def _declared_pair(model, name: str) -> Optional[tuple[float, float]]:
+    """The two values of ``<custom><numeric name=NAME>`` (None when undeclared)."""
+    vals = custom_numeric(model, name)
+    if vals is None:
+        return None
+    if len(vals) != 2:
+        raise ValueError(f"<custom> numeric {name} needs 2 values (LO HI), got {vals}")
+    return vals[0], vals[1]
 
-    ``overrides`` are :class:`RigConfig` fields; ``None`` values are ignored.
+
+def inside_defaults(model, bounds: Optional[np.ndarray] = None,
+                    data: Optional[mujoco.MjData] = None) -> dict:
+    """The ``inside`` rig's fields for a scene: ``region`` (``nerfbot_rig_region``, else the x-y
+    extent of ``bounds``), ``height_range`` / ``pitch_range`` / ``clearance`` where declared,
+    and ``keep_out``: the x-y extents of the declared obstacles (``data`` from ``mj_forward``;
+    made when None)."""
+    out = {}
+    region = custom_numeric(model, "nerfbot_rig_region")
+    if region is not None:
+        if len(region) != 4:
+            raise ValueError(f"<custom> numeric nerfbot_rig_region needs 4 values (xmin ymin "
+                             f"xmax ymax), got {region}")
+        out["region"] = tuple(region)
+    elif bounds is not None:
+        lo, hi = np.asarray(bounds, dtype=np.float64)
+        out["region"] = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
+    for key, name in (("height_range", "nerfbot_rig_heights"),
+                      ("pitch_range", "nerfbot_rig_pitch")):
+        pair = _declared_pair(model, name)
+        if pair is not None:
+            out[key] = pair
+    clearance = custom_numeric(model, "nerfbot_rig_clearance")
+    if clearance is not None:
+        out["clearance"] = clearance[0]
+    if data is None:
+        data = mujoco.MjData(model)
+        mujoco.mj_forward(model, data)
+    out["keep_out"] = tuple((float(b[0, 0]), float(b[0, 1]), float(b[1, 0]), float(b[1, 1]))
+                            for b in declared_obstacles(model, data).values())
+    return out
+
+
+def default_rig(scene: str | Path, **overrides) -> RigConfig:
+    """A rig framed for ``scene``: its declared (or bounds-derived) kind, target, radius, fov and
+    the rest of :func:`scene_rig_defaults`, with ``overrides``.
+
+    ``overrides`` are :class:`RigConfig` fields; ``None`` values are ignored. Asking for
+    ``kind="inside"`` in a scene that does not declare it takes the region and keep-out boxes
+    from the scene (:func:`inside_defaults`); other kinds ignore the inside fields.
     """
     model = load_model(scene)
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
     ids = sorted({int(g.objid) for g in rendered_geoms(model, data)})
-    defaults = scene_rig_defaults(model, content_bounds(model, data, ids) if ids else None)
-    defaults.update({k: v for k, v in overrides.items() if v is not None})
+    bounds = content_bounds(model, data, ids) if ids else None
+    defaults = scene_rig_defaults(model, bounds, data)
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    kind = overrides.get("kind", defaults.get("kind", "hemisphere"))
+    if kind == "inside" and "region" not in defaults:
+        defaults.update(inside_defaults(model, bounds, data))
+    defaults.update(overrides)
     return RigConfig(**defaults)

@@ -1,24 +1,43 @@
 """Find and load MuJoCo scenes: built-in names (``tabletop``), generated scene families
-(``glassware`` or ``glassware:SEED``, ``glazed[:SEED]``) or paths to any MJCF file."""
+(``glassware`` or ``glassware:SEED``, ``glazed[:SEED]``, and the zoo of :mod:`sims.zoo`:
+``workspace``, ``room``, ``bins``, ``yard``, each ``[:SEED]``) or paths to any MJCF file.
+
+A generated family is a function of the seed returning the MJCF text, or a
+:class:`~sims.zoo.mjcf.GeneratedScene`: the text plus asset files (textures) it refers to by
+relative path. :func:`generated_scene` writes it into :func:`scene_cache_dir`: text alone as
+``FAMILY-SEED.xml``; with assets into a folder of its own, ``FAMILY-SEED/FAMILY-SEED.xml`` with
+the assets beside it.
+"""
 
 from __future__ import annotations
 
+import functools
 import importlib.resources
 import os
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Union
 
 import mujoco  # sims/__init__ has selected the GL backend before this import
+import numpy as np
 
-from nerfbot.data.writers import write_text_atomic
+from nerfbot.data.writers import encode_png, write_bytes_atomic, write_text_atomic
 from sims.glassware import glassware_xml, glazed_xml
+from sims.zoo.bins import bins_scene
+from sims.zoo.mjcf import GeneratedScene
+from sims.zoo.room import room_scene
+from sims.zoo.workspace import workspace_scene
+from sims.zoo.yard import yard_scene
 
 #: Name of the camera :func:`load_capture_model` adds to the world body.
 CAPTURE_CAMERA = "nerfbot_capture"
 
+#: What a scene generator returns for a seed: the MJCF text, or the text and its assets.
+Generated = Union[str, GeneratedScene]
 
-def _generators() -> dict[str, Callable[[int], str]]:
-    return {"glassware": glassware_xml, "glazed": glazed_xml}
+
+def _generators() -> dict[str, Callable[[int], Generated]]:
+    return {"glassware": glassware_xml, "glazed": glazed_xml, "workspace": workspace_scene,
+            "room": room_scene, "bins": bins_scene, "yard": yard_scene}
 
 
 def builtin_scenes() -> list[str]:
@@ -47,15 +66,52 @@ def parse_generated(text: str) -> tuple[str, int] | None:
         raise ValueError(f"scene '{text}': the seed after ':' must be an integer") from None
 
 
-def generated_scene(family: str, seed: int) -> Path:
-    """Write generated scene ``family`` with ``seed`` to the scene cache (atomically; rewritten
-    only when its text changed) and return the file."""
-    text = _generators()[family](seed)
-    path = scene_cache_dir() / f"{family}-{seed}.xml"
-    if path.is_file() and path.read_text() == text:
-        return path
+@functools.lru_cache(maxsize=16)
+def _generate(family: str, seed: int) -> tuple[str, tuple[tuple[str, bytes], ...]]:
+    """(MJCF text, ((asset file name, file bytes), ...)) of ``family`` with ``seed``; arrays
+    among the assets are encoded as PNG. Cached: a capture resolves its scene several times."""
+    made = _generators()[family](seed)
+    if isinstance(made, str):
+        return made, ()
+    assets = []
+    for name, content in sorted(made.assets.items()):
+        if not name or Path(name).name != name or name.startswith(".") or name.endswith(".xml"):
+            raise ValueError(f"scene family '{family}': asset name {name!r} must be a plain "
+                             "file name (no folder, not hidden, not .xml)")
+        if isinstance(content, np.ndarray):
+            content = encode_png(content)
+        assets.append((name, bytes(content)))
+    return made.xml, tuple(assets)
 
-    return write_text_atomic(path, text)
+
+def _write_if_changed(path: Path, content: bytes) -> None:
+    """Write ``content`` to ``path`` atomically unless the file already holds exactly that."""
+    if path.is_file() and path.read_bytes() == content:
+        return
+    write_bytes_atomic(path, content)
+
+
+def generated_scene(family: str, seed: int) -> Path:
+    """Write generated scene ``family`` with ``seed`` to the scene cache and return its MJCF file.
+
+    Every file is written atomically and only when its content changed. A scene without
+    assets is ``FAMILY-SEED.xml`` in :func:`scene_cache_dir`; a scene with assets gets a folder
+    ``FAMILY-SEED/`` holding its assets and then (last, so that a reader finding the MJCF finds
+    its assets too) ``FAMILY-SEED.xml``, which names them by relative path.
+    """
+    text, assets = _generate(family, seed)
+    stem = f"{family}-{seed}"
+    if not assets:
+        path = scene_cache_dir() / f"{stem}.xml"
+        if path.is_file() and path.read_text() == text:
+            return path
+        return write_text_atomic(path, text)
+    folder = scene_cache_dir() / stem
+    for name, content in assets:
+        _write_if_changed(folder / name, content)
+    path = folder / f"{stem}.xml"
+    _write_if_changed(path, text.encode("utf-8"))
+    return path
 
 
 def resolve_scene(scene: str | Path) -> Path:

@@ -29,14 +29,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Sequence
 
 import mujoco
 import numpy as np
 
 from nerfbot.ops.cameras import look_at, spherical_eye
 from sims.joints import body_name
-from sims.manifest import content_bounds, rendered_geoms
+from sims.manifest import content_bounds, custom_numeric, custom_text, rendered_geoms
 from sims.rigs import parse_size, scene_rig_defaults
 from sims.scene import load_capture_model, load_model, resolve_scene
 
@@ -45,24 +45,9 @@ CAPTURE_KINDS = ("static", "dynamic", "articulated")
 SEQUENCE_RIGS = ("monocular", "multiview")
 #: How the monocular camera of a dynamic capture moves.
 CAMERA_PATHS = ("spiral", "random")
-
-
-def custom_text(model: mujoco.MjModel, name: str) -> Optional[str]:
-    """The ``<custom><text name=NAME data=.../>`` string of the model, or None."""
-    tid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_TEXT, name)
-    if tid < 0:
-        return None
-    adr, size = int(model.text_adr[tid]), int(model.text_size[tid])
-    return bytes(model.text_data[adr:adr + size]).decode().rstrip("\x00").strip()
-
-
-def custom_numeric(model: mujoco.MjModel, name: str) -> Optional[list[float]]:
-    """The ``<custom><numeric name=NAME data=.../>`` values of the model, or None."""
-    nid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_NUMERIC, name)
-    if nid < 0:
-        return None
-    adr, size = int(model.numeric_adr[nid]), int(model.numeric_size[nid])
-    return [float(v) for v in model.numeric_data[adr:adr + size]]
+#: What a :class:`SequenceRig` takes of a scene's declared or derived rig defaults
+#: (:func:`sims.rigs.scene_rig_defaults`).
+_FRAMING_FIELDS = ("target", "radius", "fov_deg", "elevation_range")
 
 
 def capture_kind(model: mujoco.MjModel) -> str:
@@ -171,7 +156,8 @@ def sequence_rig(scene: str | Path, kind: str = "monocular", views_per_step: int
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
     ids = sorted({int(g.objid) for g in rendered_geoms(model, data)})
-    framing = scene_rig_defaults(model, content_bounds(model, data, ids) if ids else None)
+    framing = scene_rig_defaults(model, content_bounds(model, data, ids) if ids else None, data)
+    framing = {k: v for k, v in framing.items() if k in _FRAMING_FIELDS}
     azimuth = custom_numeric(model, "nerfbot_rig_azimuth")
     if azimuth is not None:
         if len(azimuth) != 2:

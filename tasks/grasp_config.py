@@ -36,12 +36,12 @@ class GraspTaskConfig:
                                                          "density_noise": 0.0,
                                                          "samples_per_batch": 1 << 17})
     """Method options of the training runs. The distortion loss (weight 0.01) halves the
-    floaters a threshold catches at low densities (BENCHMARKS.md, glassware calibration).
+    floaters a threshold catches at low densities.
     One ray per pixel: the grasp figures and the threshold calibration were measured so; ngp's
-    2 x 2 rays per pixel (its default since) cost 0.7 dB on the glazed look-alike scene.
-    No density noise (ngp's default since session 12): glass is a real veil that the
+    2 x 2 rays per pixel (its default) cost 0.7 dB on the glazed look-alike scene.
+    No density noise (ngp's default adds it): glass is a real veil that the
     threshold finds, and the calibration was measured without it. 2^17 samples per step
-    (ngp's default until session 13, now 2^15): the step budget was set with it."""
+    (ngp's default is 2^15): the step budget was set with it."""
     query_views: int = 8
     query_size: int = 128
     query_fov: float = 40.0

@@ -93,7 +93,8 @@ def test_auto_config_reads_a_bench_table(tmp_path):
     data = tmp_path / "s"
     data.mkdir()
     assert len(bench_rows(tmp_path, scene="s", method="ngp", options={"sh_degree": 0})) == 3
-    choice = auto_train_config(_manifest(specular=False), data, tmp_path / "run", {},
+    choice = auto_train_config(choose_from_manifest(_manifest(specular=False)), data,
+                               tmp_path / "run", {},
                                target_psnr=28.0, bench_table=tmp_path)
     assert choice.budget_seconds == 60.0 and choice.options == {"sh_degree": 0}
     with pytest.raises(FileNotFoundError):

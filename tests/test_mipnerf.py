@@ -1,5 +1,5 @@
 """mip-NeRF: integrated positional encoding, frustum Gaussians, pixel radii, training, and
-evaluation at lower resolutions (issue 6)."""
+evaluation at lower resolutions."""
 
 from __future__ import annotations
 

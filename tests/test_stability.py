@@ -1,4 +1,4 @@
-"""Numerical stability at the extremes (issue 4): rendering arithmetic, samplers, encodings,
+"""Numerical stability at the extremes: rendering arithmetic, samplers, encodings,
 losses and training, fed the inputs the normal-case tests avoid.
 
 * densities 0, 1e-12, 1e10, +inf (and activations fed 0, 1e-12, 1e10, +/-inf); deltas 0, 1e-9,

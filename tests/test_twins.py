@@ -196,6 +196,23 @@ def _marching(n: int, fill: float = 0.4, cone: float = 0.0):
     return make
 
 
+def _marching_contracted(n: int, fill: float = 0.4):
+    """Rays from inside and outside the inner cube, in every direction, to 1000 half-sizes,
+    through a grid over contracted space whose outer shell is partly occupied."""
+    def make(g):
+        grid = OccupancyGrid(torch.tensor(AABB), 16, contract=True)
+        occ = torch.rand(16, 16, 16, generator=g) < fill
+        grid.occupied.copy_(occ.to(torch.uint8))
+        centre = torch.tensor(AABB).mean(0)
+        o = centre + 0.4 * torch.randn(n, 3, generator=g) * torch.rand(n, 1, generator=g) * 4
+        d = _unit(n, g)
+        t_near = torch.zeros(n)
+        t_far = torch.full((n,), 1000.0 * grid.half)
+        return {"grid": grid, "o": o, "d": d, "t_near": t_near, "t_far": t_far,
+                "steps": (0.02, 0.02, 0.0, 1 << 30)}
+    return make
+
+
 def _packed(s) -> tuple:
     return s.ray_indices, s.t_starts, s.t_ends, s.t_stop
 
@@ -208,6 +225,20 @@ def _march_kernel(grid, o, d, t_near, t_far, steps):
 def _march_twin(grid, o, d, t_near, t_far, steps):
     return _packed(march_reference(o, d, t_near, t_far, grid.occupied, grid.cube_min,
                                    grid.cell_size, *steps))
+
+
+def _march_contracted_kernel(grid, o, d, t_near, t_far, steps):
+    return _packed(march_kernels(o, d, t_near, t_far, grid.occupied, grid.cube_min,
+                                 grid.cell_size, *steps, contraction=(grid.centre, grid.half)))
+
+
+def _march_contracted_twin(grid, o, d, t_near, t_far, steps):
+    return _packed(march_reference(o, d, t_near, t_far, grid.occupied, grid.cube_min,
+                                   grid.cell_size, *steps, contraction=(grid.centre, grid.half)))
+
+
+def _march_contracted_entry(grid, o, d, t_near, t_far, steps):
+    return _packed(grid.march(o, d, t_near, t_far, *steps))
 
 
 # -- per-ray scan (nerfbot.kernels.scan) ----------------------------------------------------------
@@ -537,6 +568,10 @@ TABLE = [
     Twin("march/cone", _marching(300, cone=0.02), _march_kernel, _march_twin, atol=1e-5),
     Twin("march/no_samples", _marching(100, fill=0.0), _march_kernel, _march_twin, atol=1e-5),
     Twin("march/empty", _marching(0), _march_kernel, _march_twin),
+    Twin("march/contracted", _marching_contracted(200), _march_contracted_kernel,
+         _march_contracted_twin, atol=1e-5, rtol=1e-5, entry=_march_contracted_entry),
+    Twin("march/contracted_empty", _marching_contracted(0), _march_contracted_kernel,
+         _march_contracted_twin),
     Twin("segment_cumsum", _scan(200), _scan_kernel, _scan_twin, atol=1e-12,
          grads=("values",), grad_atol=1e-12,
          entry=lambda values, ray_indices, starts: (segment_exclusive_cumsum(

@@ -1,5 +1,5 @@
-"""Density along the rays through one object's pixels, around its true surface (BENCHMARKS.md,
-issue 2, session 12).
+"""Density along the rays through one object's pixels, around its true surface (the
+veils that ``ngp``'s log-density noise turns into surfaces).
 
 For the first three test views that show the object: the field's density (1/m) at the true
 surface (from the ground-truth z-depth) plus offsets from -10 to +12 cm along each ray, for the

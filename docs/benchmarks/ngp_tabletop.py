@@ -62,7 +62,7 @@ def main() -> None:
     head = " | ".join(f"@{m:g} s" for m in marks)
     print(f"\n| dataset | PSNR {head} | non-sky PSNR | SSIM | steps (steps/s) | depth MAE, all "
           "| objects: expected / median | render ms |")
-    print("|---|" + "---|" * 11)
+    print("|---|" + "---|" * 10)
     print("\n".join(rows))
 
 

@@ -1,5 +1,5 @@
 """Mean colour and PSNR of each geom's pixels, ground truth against a run's renders
-(BENCHMARKS.md, issue 2, session 13: the small objects were underfit in colour).
+(small objects underfit in colour show here).
 
 usage: python docs/benchmarks/object_colours.py RUN DATA [SPLIT]   (SPLIT: test or train; the
 first 10 views of it)

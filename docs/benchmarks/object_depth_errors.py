@@ -1,4 +1,4 @@
-"""Per-object depth errors of a run on a dataset's test split (BENCHMARKS.md, issue 2).
+"""Per-object depth errors of a run on a dataset's test split (BENCHMARKS.md, section 1).
 
 For each object the manifest declares: pixels, MAE of the expected z-depth, its signed median
 (positive: the field's surface lies too far), MAE of the median and of the threshold depth

@@ -235,9 +235,10 @@ def _train_into(args, out: Path, ds, options: dict, background) -> int:
     method, max_seconds = args.method, args.max_seconds
     if method == "auto":
         from nerfbot.bench.auto_sweep import auto_train_config
+        from nerfbot.train.auto import choose_for_dataset
 
         try:
-            choice = auto_train_config(ds.manifest, Path(args.data), out, options,
+            choice = auto_train_config(choose_for_dataset(ds), Path(args.data), out, options,
                                        args.target_psnr, args.time_budget, args.bench_table)
         except (ValueError, FileNotFoundError) as err:
             raise UsageError(f"--method auto: {err}")

@@ -196,7 +196,8 @@ def bake_octree(model: Model, spec: dict, depth: int, dataset=None, finetune_ste
 
     baked_spec = {**spec, "method": "plenoctree_octree",
                   "options": {"depth": depth, "sh_degree": field.sh_degree}}
-    baked = PlenOctreeModel(np.asarray(spec["aabb"], np.float32), make_background(spec["background"]),
+    baked = PlenOctreeModel(np.asarray(spec["aabb"], np.float32),
+                            make_background(spec["background"]),
                             PlenOctreeConfig(**baked_spec["options"]))
     baked.field.set_tree(child, values[order])
     baked.background.load_state_dict(model.background.state_dict())

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 from nerfbot.bench.sweep import BenchConfig, run_bench
-from nerfbot.train.auto import AutoChoice, bench_rows, choose_budget, choose_from_manifest
+from nerfbot.train.auto import AutoChoice, bench_rows, choose_budget
 
 
 log = logging.getLogger(__name__)
@@ -35,13 +35,13 @@ def builtin_sweep_rows(data: Path, choice: AutoChoice, out: Path,
     return [r for r in result.rows if r["method"] == choice.method]
 
 
-def auto_train_config(manifest: Optional[dict], data: Path, run: Path, user_options: dict,
+def auto_train_config(choice: AutoChoice, data: Path, run: Path, user_options: dict,
                       target_psnr: Optional[float] = None, time_budget: Optional[float] = None,
                       bench_table: Optional[Path] = None) -> AutoChoice:
-    """Everything ``nerfbot train --method auto`` decides: the method and options from the
-    manifest (``user_options`` override them), and with a target or time budget, the training
-    seconds from a bench table (or a built-in sweep in ``run/auto_sweep``)."""
-    choice = choose_from_manifest(manifest)
+    """Everything ``nerfbot train --method auto`` decides beyond the scene's ``choice``
+    (:func:`~nerfbot.train.auto.choose_for_dataset`): ``user_options`` override its options,
+    and with a target or time budget, the training seconds come from a bench table (or a
+    built-in sweep in ``run/auto_sweep``)."""
     for k, v in user_options.items():
         if choice.options.get(k) != v:
             choice.reasons.append(f"option {k}={v} given by the user")

@@ -39,7 +39,7 @@ from nerfbot.methods import bake_model, bake_option_names, get_method, option_na
 from nerfbot.models.base import num_params
 from nerfbot.ops.runtime import keep_freed_memory
 from nerfbot.query.meshing import compare_meshes, field_mesh
-from nerfbot.train.auto import choose_from_manifest
+from nerfbot.train.auto import choose_for_dataset
 from nerfbot.train.baked_runs import baked_size_mb
 from nerfbot.train.checkpoints import CHECKPOINT
 from nerfbot.train.trainer import TrainConfig, Trainer
@@ -200,7 +200,7 @@ def run_point(point: dict, run_dir: Path) -> dict:
     method, options, resolved = point["method"], dict(point["options"]), {}
     if method == "auto":  # what `nerfbot train --method auto` picks for this scene
 
-        choice = choose_from_manifest(ds.manifest)
+        choice = choose_for_dataset(ds)
         method = choice.method
         fixed = {k: v for k, v in options.items() if k in option_names(method)}
         options = {**choice.options, **fixed}

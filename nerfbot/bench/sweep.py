@@ -96,7 +96,8 @@ class BenchConfig:
     """Surface density (1/m); None: :func:`nerfbot.query.meshing.default_density_threshold`."""
     chamfer_points: int = 100_000
     visible_only: bool = True
-    """Chamfer over the surface parts the training cameras see (see :mod:`nerfbot.query.meshing`)."""
+    """Chamfer over the surface parts the training cameras see (see
+    :mod:`nerfbot.query.meshing`)."""
     executor: str = "local"
     address: Optional[str] = None
     ray_num_cpus: Optional[int] = None

@@ -20,12 +20,18 @@ Camera-based rule (all distances in metres):
    capped as in step 2.
    In both rules the cap is skipped only if a camera sits at the centre itself (it would give
    an empty box).
+
+Whether the bounds are enough (:func:`choose_space`, used by ``--method auto``): a box models
+only what lies inside it. Outdoors the content reaches far beyond the cameras, and seen from
+inside a room the cameras' axes meet nowhere; both get the scene contraction around the
+cameras' region instead (:func:`camera_region`).
 """
 
 from __future__ import annotations
 
 import logging
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -43,6 +49,16 @@ SIZE_FACTOR = 1.1
 CAP_FACTOR = 0.9
 #: Look distance floor of the parallel-axes fallback, metres.
 MIN_LOOK_DISTANCE = 1.0
+#: Manifest bounds whose largest edge exceeds this many times the cameras' region hold content
+#: far beyond the cameras (outdoors): the scene is unbounded for a box model.
+UNBOUNDED_RATIO = 8.0
+#: Cameras whose optical axes miss the point closest to all of them by more than this (median
+#: angle, degrees) do not look at one object: they see the scene from inside it.
+CONVERGENCE_ANGLE = 30.0
+#: Margin of the cameras' region on every side, as a fraction of its largest edge, and its
+#: floor in metres.
+REGION_PAD_FRACTION = 0.1
+REGION_PAD_MIN = 0.25
 
 
 def as_aabb(value: Any, where: str, *, strict: bool) -> np.ndarray:
@@ -141,3 +157,76 @@ def estimate_bounds_from_cameras(c2w, intrinsics, sizes) -> np.ndarray:
         (2, 3) float64 min / max corners of a cube, metres.
     """
     return estimate_bounds_with_rule(c2w, intrinsics, sizes)[0]
+
+
+def camera_region(c2w) -> np.ndarray:
+    """(2, 3) cube enclosing the camera centres, grown on every side by
+    ``max(REGION_PAD_FRACTION * edge, REGION_PAD_MIN)`` metres: the inner cube of a contracted
+    model of a scene seen from within."""
+    origins = np.asarray(c2w, dtype=np.float64).reshape(-1, 4, 4)[:, :3, 3]
+    lo, hi = origins.min(axis=0), origins.max(axis=0)
+    centre = 0.5 * (lo + hi)
+    edge = float((hi - lo).max())
+    half = 0.5 * edge + max(REGION_PAD_FRACTION * edge, REGION_PAD_MIN)
+    return np.stack([centre - half, centre + half])
+
+
+def axes_miss_angle(c2w) -> float:
+    """Median angle (degrees) between each camera's optical axis and the direction from it to
+    the point closest to all axes (180 when the axes are parallel or meet behind the cameras)."""
+    c2w = np.asarray(c2w, dtype=np.float64).reshape(-1, 4, 4)
+    origins, dirs = c2w[:, :3, 3], -c2w[:, :3, 2]
+    dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    projectors = np.eye(3)[None] - dirs[:, :, None] * dirs[:, None, :]
+    a = projectors.sum(axis=0)
+    if len(c2w) < 2 or np.linalg.eigvalsh(a / len(c2w))[0] <= PARALLEL_EIGEN:
+        return 180.0
+    centre = np.linalg.solve(a, np.einsum("nij,nj->i", projectors, origins))
+    to_centre = centre - origins
+    norms = np.linalg.norm(to_centre, axis=1)
+    cos = np.einsum("ni,ni->n", to_centre, dirs) / np.maximum(norms, 1e-12)
+    return float(np.degrees(np.arccos(np.clip(np.median(cos), -1.0, 1.0))))
+
+
+@dataclass(frozen=True)
+class SpaceChoice:
+    """How to model a scene's space: a box (``contraction`` False) or the scene contraction
+    around the cube of ``aabb`` (2, 3) metres; ``reason`` says why, in one line."""
+
+    contraction: bool
+    aabb: np.ndarray
+    reason: str
+
+
+def choose_space(aabb, aabb_source: str, c2w) -> SpaceChoice:
+    """Box or contraction, from the bounds, where they came from, and the (N, 4, 4) camera
+    poses.
+
+    - Bounds the user gave are kept as a box.
+    - Manifest bounds: when their largest edge exceeds :data:`UNBOUNDED_RATIO` times the
+      cameras' region (:func:`camera_region`), the content reaches far beyond the cameras:
+      contraction around that region. Otherwise the box.
+    - Bounds estimated from the cameras: cameras that look at one point (median miss angle
+      under :data:`CONVERGENCE_ANGLE`) keep the estimated box; cameras that do not (a room or
+      a street seen from inside) get the contraction around their region.
+    """
+    aabb = np.asarray(aabb, dtype=np.float64)
+    region = camera_region(c2w)
+    region_edge = float(region[1, 0] - region[0, 0])
+    edge = float((aabb[1] - aabb[0]).max())
+    if aabb_source == "user":
+        return SpaceChoice(False, aabb, "bounds given by the user: a box")
+    if aabb_source == "manifest":
+        if edge > UNBOUNDED_RATIO * region_edge:
+            return SpaceChoice(True, region, (
+                f"unbounded: the manifest's bounds ({edge:.3g} m) exceed {UNBOUNDED_RATIO:g}x "
+                f"the cameras' region ({region_edge:.3g} m); scene contraction around it"))
+        return SpaceChoice(False, aabb, "bounds from the manifest: a box")
+    miss = axes_miss_angle(c2w)
+    if miss > CONVERGENCE_ANGLE:
+        return SpaceChoice(True, region, (
+            f"seen from inside: the cameras' axes miss their common point by {miss:.0f} degrees "
+            f"(median, > {CONVERGENCE_ANGLE:g}); scene contraction around the cameras' region "
+            f"({region_edge:.3g} m)"))
+    return SpaceChoice(False, aabb, (f"bounds from the cameras (axes meet within {miss:.0f} "
+                                     "degrees): a box"))

@@ -37,8 +37,12 @@ class Dataset:
         times: (N,) float32 in [0, 1], or None for a static capture.
         joints: N dicts joint name -> position, or None.
         splits: split name ("train", "val", "test") -> sorted frame indices.
-        aabb: (2, 3) float64 min / max corner of the scene content, metres.
+        aabb: (2, 3) float64 min / max corner of the scene content, metres; for an
+            ``unbounded`` scene, the cube around the cameras (the inner cube of a contracted
+            model).
         aabb_source: "manifest", "cameras" or "user".
+        unbounded: the content reaches beyond ``aabb`` (outdoors, or seen from inside;
+            :func:`nerfbot.data.bounds.choose_space`): model it with the scene contraction.
         manifest: the scene manifest dict written by ``sims``, or None.
         background: "learned" (function of ray direction), or an RGB triple in [0, 1] when the
             images were composited on a fixed colour.
@@ -63,6 +67,7 @@ class Dataset:
     aabb: np.ndarray
     aabb_source: str
     manifest: Optional[dict] = None
+    unbounded: bool = False
     background: object = "learned"
     extras: dict = field(default_factory=dict)
     sensor_depths: list = field(default_factory=list)

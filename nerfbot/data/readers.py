@@ -34,7 +34,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from nerfbot.data.blender import parse_blender
-from nerfbot.data.bounds import as_aabb, estimate_bounds_with_rule, pad_bounds
+from nerfbot.data.bounds import as_aabb, choose_space, estimate_bounds_with_rule, pad_bounds
 from nerfbot.data.dataset import Dataset
 from nerfbot.data.errors import DatasetError
 from nerfbot.data.images import (composite, read_depth, read_image, read_mask,
@@ -355,6 +355,10 @@ def load_dataset(path: Union[str, os.PathLike], *, aabb=None, background=None) -
     box, source, rule = _bounds(aabb, parsed, c2w, intrinsics, sizes)
     if source == "manifest":
         _check_cameras_near_scene(specs, c2w, box)
+    space = choose_space(box, source, c2w)
+    if space.contraction:
+        box = space.aabb
+        log.info("%s", space.reason)
 
     any_alpha = any(f.alpha is not None for f in frames)
     opaque = sum(f.opaque_alpha for f in frames)
@@ -369,6 +373,7 @@ def load_dataset(path: Union[str, os.PathLike], *, aabb=None, background=None) -
         source_camera_models=[f.intr.model for f in frames],
         undistorted=[f.intr.distorted for f in frames],
         bounds_rule=rule,
+        space=space.reason,
     )
     log.info("loaded %d frames (%s) from %s; bounds from %s", len(frames), parsed.format,
              parsed.root, source)
@@ -391,6 +396,7 @@ def load_dataset(path: Union[str, os.PathLike], *, aabb=None, background=None) -
         aabb=box,
         aabb_source=source,
         manifest=parsed.manifest,
+        unbounded=space.contraction,
         background=dataset_bg,
         extras=extras,
     )

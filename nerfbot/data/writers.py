@@ -68,13 +68,18 @@ def write_text_atomic(path: Path, text: str) -> Path:
 
     A reader never sees a partial file; on failure the previous file (if any) is untouched.
     """
+    return write_bytes_atomic(path, text.encode("utf-8"))
+
+
+def write_bytes_atomic(path: Path, content: bytes) -> Path:
+    """Write ``content`` to ``path`` atomically, as :func:`write_text_atomic` writes text."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         os.fchmod(fd, default_file_mode())  # mkstemp's 0600 would hide datasets from other users
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
+        with os.fdopen(fd, "wb") as f:
+            f.write(content)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
@@ -89,6 +94,20 @@ def default_file_mode() -> int:
     umask = os.umask(0)
     os.umask(umask)
     return 0o666 & ~umask
+
+
+def encode_png(image: np.ndarray) -> bytes:
+    """The PNG file bytes of an (H, W, 3) uint8 RGB or (H, W) uint8 grey image."""
+    image = np.ascontiguousarray(image)
+    if image.dtype != np.uint8 or image.ndim not in (2, 3) or (
+            image.ndim == 3 and image.shape[2] != 3):
+        raise ValueError(f"PNG image must be (H, W, 3) or (H, W) uint8, got {image.shape} "
+                         f"{image.dtype}")
+    bgr = cv2.cvtColor(image, cv2.COLOR_RGB2BGR) if image.ndim == 3 else image
+    ok, buffer = cv2.imencode(".png", bgr)
+    if not ok:
+        raise OSError("OpenCV could not encode the image as PNG")
+    return buffer.tobytes()
 
 
 def write_png(path: Path, rgb: np.ndarray) -> None:

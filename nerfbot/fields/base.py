@@ -8,6 +8,8 @@ from typing import Optional
 import torch
 from torch import nn
 
+from nerfbot.ops.contraction import CONTRACTED_HALF, contract, step_scale
+
 
 def _trunc_exp_limit(dtype: torch.dtype) -> float:
     """Largest argument of :func:`trunc_exp`: 15, or 11 in float16, whose largest finite value
@@ -113,6 +115,8 @@ def mlp(in_dim: int, hidden: int, n_hidden_layers: int, out_dim: int) -> nn.Sequ
 class BoxNormalizer(nn.Module):
     """Maps world points into [0, 1]^3 of the cube enclosing the scene bounds (isotropic)."""
 
+    contracted = False
+
     def __init__(self, aabb):
         super().__init__()
         aabb = torch.as_tensor(aabb, dtype=torch.float32)
@@ -128,3 +132,50 @@ class BoxNormalizer(nn.Module):
     def inside(self, x: torch.Tensor) -> torch.Tensor:
         """(N,) bool: the point lies within the scene bounds (not just the cube)."""
         return ((x >= self.aabb[0]) & (x <= self.aabb[1])).all(-1)
+
+    @property
+    def extent(self) -> float:
+        """Edge of the modelled cube, metres."""
+        return float(self.cube_size)
+
+
+class ContractedNormalizer(nn.Module):
+    """Maps all of space into [0, 1]^3 through the scene contraction
+    (:mod:`nerfbot.ops.contraction`): the cube enclosing the scene bounds (the inner cube) to
+    [1/4, 3/4]^3, everything beyond it into the shell around that.
+
+    Attributes match :class:`BoxNormalizer`'s (``cube_min``, ``cube_size`` are the inner cube's).
+    """
+
+    contracted = True
+
+    def __init__(self, aabb):
+        super().__init__()
+        aabb = torch.as_tensor(aabb, dtype=torch.float32)
+        center = 0.5 * (aabb[0] + aabb[1])
+        half = 0.5 * (aabb[1] - aabb[0]).max()
+        self.register_buffer("aabb", aabb.clone())
+        self.register_buffer("centre", center)
+        self.register_buffer("cube_min", center - half)
+        self.register_buffer("cube_size", 2.0 * half)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        half = 0.5 * self.cube_size
+        c = contract((x - self.centre) / half)
+        return (c + CONTRACTED_HALF) / (2.0 * CONTRACTED_HALF)
+
+    def inside(self, x: torch.Tensor) -> torch.Tensor:
+        """(N,) bool: every finite point is modelled."""
+        return torch.isfinite(x).all(-1)
+
+    def density_scale(self, x: torch.Tensor) -> torch.Tensor:
+        """(N,) factor from density per unit of contracted length (what a field over the
+        contracted cube learns) to density per metre: ``1 / max(1, |y|_inf^2)``. A field of
+        uniform contracted density is then equally opaque over every cell of the contracted
+        grid, and the far shell has a finite optical depth."""
+        return 1.0 / step_scale((x - self.centre) / (0.5 * self.cube_size))
+
+    @property
+    def extent(self) -> float:
+        """Edge of the modelled cube, metres of contracted space."""
+        return float(CONTRACTED_HALF * self.cube_size)

@@ -8,7 +8,7 @@ from typing import Optional
 
 import torch
 
-from nerfbot.fields.base import BoxNormalizer, Field, mlp, trunc_exp
+from nerfbot.fields.base import BoxNormalizer, ContractedNormalizer, Field, mlp, trunc_exp
 from nerfbot.ops.encodings import HashGridConfig, SHEncoding
 
 
@@ -44,13 +44,16 @@ class NGPFieldConfig(HashGridConfig):
 class NGPField(Field):
     """sigma = trunc_exp(MLP_d(hash(x))[0] + bias); rgb = sigmoid(MLP_c(MLP_d(hash(x))[1:], SH(d))).
 
-    Points outside the scene bounds have zero density.
+    Points outside the scene bounds have zero density; with ``contract`` the hash grid covers
+    all of space through the scene contraction around the bounds' cube
+    (:class:`~nerfbot.fields.base.ContractedNormalizer`).
     """
 
-    def __init__(self, aabb, config: NGPFieldConfig | None = None, seed: int = 0):
+    def __init__(self, aabb, config: NGPFieldConfig | None = None, seed: int = 0,
+                 contract: bool = False):
         super().__init__()
         self.config = cfg = config or NGPFieldConfig()
-        self.normalize = BoxNormalizer(aabb)
+        self.normalize = ContractedNormalizer(aabb) if contract else BoxNormalizer(aabb)
         self.encoding = cfg.hash_encoding(seed)
         self.density_mlp = mlp(self.encoding.out_dim, cfg.hidden, 1, 1 + cfg.geo_feat_dim)
         self.dir_encoding = SHEncoding(cfg.sh_degree)
@@ -67,7 +70,7 @@ class NGPField(Field):
 
         if not 0.0 < cfg.initial_transmittance < 1.0:
             raise ValueError(f"initial_transmittance must be in (0, 1), got {cfg.initial_transmittance}")
-        diagonal = math.sqrt(3.0) * float(self.normalize.cube_size)
+        diagonal = math.sqrt(3.0) * self.normalize.extent
         self.density_bias = math.log(-math.log(cfg.initial_transmittance) / diagonal)
         if cfg.mlp_precision not in ("bf16", "fp32"):
             raise ValueError(f"mlp_precision must be 'bf16' or 'fp32', got {cfg.mlp_precision!r}")
@@ -97,6 +100,8 @@ class NGPField(Field):
             h = self.density_mlp(enc)
         h = h.float()
         sigma = trunc_exp(h[:, 0] + self.density_bias)
+        if self.normalize.contracted:
+            sigma = sigma * self.normalize.density_scale(x)
         sigma = torch.where(self.normalize.inside(x), sigma, torch.zeros_like(sigma))
         return sigma, h[:, 1:]
 

@@ -31,8 +31,8 @@ class TNeRFFieldConfig:
 class TNeRFField(NGPField):
     """sigma, rgb = NGP(hash(x) ++ gamma(c)): the condition is just another input.
 
-    ``cond`` (N, C) in scene units (see :class:`~nerfbot.data.conditioning.Conditioning`); None means
-    the low end of every range (t = 0, joints at their lower limits).
+    ``cond`` (N, C) in scene units (see :class:`~nerfbot.data.conditioning.Conditioning`); None
+    means the low end of every range (t = 0, joints at their lower limits).
     """
 
     def __init__(self, aabb, conditioning: Conditioning, config: NGPFieldConfig | None = None,

@@ -105,8 +105,9 @@ class Model(nn.Module, metaclass=abc.ABCMeta):
 
     def baked_background(self, directions: torch.Tensor) -> np.ndarray:
         """(R, 3) CPU unit directions -> (R, 3) float32 numpy: the background read from an
-        octahedral table of it (:class:`~nerfbot.fields.background.BakedBackground`, rebuilt when the
-        background changes). The baked renderers' background; its error is bounded by a test."""
+        octahedral table of it (:class:`~nerfbot.fields.background.BakedBackground`, rebuilt
+        when the background changes). The baked renderers' background; its error is bounded by
+        a test."""
         baked = self.__dict__.get("_baked_background")
         if baked is None or baked.module is not self.background:
             baked = self.__dict__["_baked_background"] = BakedBackground(self.background)

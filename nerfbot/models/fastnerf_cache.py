@@ -56,7 +56,7 @@ class FastNeRFCacheConfig:
     """Samples of at most this weight take their ray's mean colour instead of reading the
     cache's colour table (the fused renderer's; 0: every sample reads it). On the tabletop
     1e-2 renders 1.3x faster than 0, and 0.08 dB better: the faint samples in front of
-    surfaces are the least trained ones (BENCHMARKS.md, issue 6)."""
+    surfaces are the least trained ones."""
 
 
 class CachedField(Field):
@@ -290,8 +290,8 @@ class FastNeRFCacheModel(Model):
     @torch.no_grad()
     def render_fused(self, rays: Rays) -> RenderOutput:
         """The numba renderer (:func:`nerfbot.kernels.fastnerf_cache.render`) on CPU rays; the
-        background is read from its baked table (:meth:`~nerfbot.models.base.Model.baked_background`)
-        once per batch and passed in."""
+        background is read from its baked table
+        (:meth:`~nerfbot.models.base.Model.baked_background`) once per batch and passed in."""
         n = len(rays)
         if n == 0:
             return self.render_reference(rays)

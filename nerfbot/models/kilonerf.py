@@ -46,7 +46,7 @@ class KiloNeRFConfig:
     """When rendering (eval mode), samples whose weight is at most this get no colour
     evaluation: they take the weight-averaged colour of their ray's other samples (their weight
     is kept, so opacity and depth are exact); 0 evaluates all. On the tabletop 1e-2 renders
-    14% faster than 1e-4 for -0.05 dB (BENCHMARKS.md, issue 6)."""
+    14% faster than 1e-4 for -0.05 dB."""
     render_precision: str = "fp32"
     """Precision of the one-pass renderer: "fp32" (the fused numba kernel,
     :meth:`KiloNeRFModel.render_fused`) or "bf16" (batched matmuls with float32 accumulation,

@@ -16,6 +16,7 @@ from torch import nn
 from nerfbot.fields.base import Field
 from nerfbot.models.base import Model, pixel_mean
 from nerfbot.ops.cameras import Rays
+from nerfbot.ops.contraction import disparity_distance
 from nerfbot.ops.losses import distortion_loss
 from nerfbot.ops.rendering import RenderOutput, composite, render_weights
 from nerfbot.ops.sampling import OccupancyGrid, ray_aabb
@@ -72,6 +73,13 @@ class OccupancyModelConfig:
     """Fraction of the training budget before which training rays go through the pixel
     centres, S x S per pixel after it. With a fixed number of samples per batch, S x S rays
     per pixel mean S^2 times fewer pixels per step, which slows the early, coarse phase."""
+    contraction: bool = False
+    """Model all of space, not only the bounds: the scene contraction
+    (:mod:`nerfbot.ops.contraction`) keeps the bounds' enclosing cube as it is and maps
+    everything beyond it into a shell as thick again; the occupancy grid covers the contracted
+    cube and rays march from the camera to :data:`CONTRACTED_FAR` half-sizes, with steps that
+    grow as the square of the distance. For scenes seen from inside (rooms) and scenes with
+    far content (outdoors); the field must take contracted coordinates (``ngp``)."""
 
     def __post_init__(self):
         for name in ("grid_resolution", "grid_update_every", "render_steps", "samples_per_batch",
@@ -85,6 +93,11 @@ class OccupancyModelConfig:
         for name in ("early_stop_transmittance", "supersample_from"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"option {name}: must be in [0, 1], got {getattr(self, name)}")
+
+
+#: Under the contraction rays stop this many inner half-sizes from the camera (contracted
+#: radius 1.999): beyond, the learned background takes over.
+CONTRACTED_FAR = 1000.0
 
 
 class OccupancyModel(Model):
@@ -104,8 +117,13 @@ class OccupancyModel(Model):
         self.field = field
         self.background = background
         self.register_buffer("aabb", torch.as_tensor(aabb, dtype=torch.float32).clone())
-        self.grid = OccupancyGrid(self.aabb, cfg.grid_resolution, cfg.grid_threshold)
-        self.dt_min = self.grid.cube_size * math.sqrt(3.0) / cfg.render_steps
+        self.grid = OccupancyGrid(self.aabb, cfg.grid_resolution, cfg.grid_threshold,
+                                  contract=cfg.contraction)
+        if cfg.contraction and not getattr(getattr(field, "normalize", None), "contracted",
+                                           False):
+            raise ValueError(f"option contraction: {type(field).__name__} does not take "
+                             "contracted coordinates (ngp does)")
+        self.dt_min = self.grid.inner_size * math.sqrt(3.0) / cfg.render_steps
         self.dt_max = 8.0 * self.dt_min if cfg.cone_angle > 0 else self.dt_min
 
     @property
@@ -116,6 +134,16 @@ class OccupancyModel(Model):
         return self.supersample if progress >= self.config.supersample_from else 1
 
     # -- sampling ----------------------------------------------------------------------------
+    def ray_range(self, rays: Rays) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(t_near, t_far, hit), each (R,): where rays enter and leave the modelled space (the
+        bounds, or under the contraction from the camera to :data:`CONTRACTED_FAR`)."""
+        if not self.config.contraction:
+            return ray_aabb(rays.origins, rays.directions, self.aabb)
+        n, device = len(rays), self.aabb.device
+        far = CONTRACTED_FAR * self.grid.half
+        return (torch.zeros(n, device=device), torch.full((n,), far, device=device),
+                torch.ones(n, dtype=torch.bool, device=device))
+
     def _march(self, rays: Rays, t_begin, t_far, max_per_ray: int = 1 << 30):
         return self.grid.march(rays.origins, rays.directions, t_begin, t_far, self.dt_min,
                                self.dt_max, self.config.cone_angle, max_per_ray)
@@ -130,7 +158,7 @@ class OccupancyModel(Model):
         Eval mode: rounds of marching with early termination (see :meth:`_render_inference`)."""
         if not self.training:
             return self._render_inference(rays, cond)
-        t_near, t_far, _ = ray_aabb(rays.origins, rays.directions, self.aabb)
+        t_near, t_far, _ = self.ray_range(rays)
         jitter = torch.rand(t_near.shape, generator=generator, device=t_near.device)
         s = self._march(rays, t_near + jitter * self.dt_min, t_far)
         ray_idx, ts, te = s.ray_indices, s.t_starts, s.t_ends
@@ -155,7 +183,7 @@ class OccupancyModel(Model):
         """March in rounds of a few samples per ray, dropping rays whose transmittance fell
         below ``early_stop_transmittance``; then composite all kept samples at once."""
         n = len(rays)
-        t_near, t_far, hit = ray_aabb(rays.origins, rays.directions, self.aabb)
+        t_near, t_far, hit = self.ray_range(rays)
         t_cur = t_near.clone()
         log_trans = torch.zeros(n, dtype=torch.float64)
         alive = hit.clone()
@@ -190,9 +218,12 @@ class OccupancyModel(Model):
         out = self.render_rays(rays, generator, cond)
         loss = F.mse_loss(pixel_mean(out.rgb, rays_per_pixel), target_rgb)
         if self.config.distortion_weight > 0:
+            diagonal = self.grid.inner_size * math.sqrt(3.0)
+            ts, te = out.t_starts, out.t_ends
+            if self.config.contraction:
+                ts, te = disparity_distance(ts, diagonal), disparity_distance(te, diagonal)
             loss = loss + self.config.distortion_weight * distortion_loss(
-                out.weights, out.t_starts, out.t_ends, out.ray_indices, len(rays),
-                self.grid.cube_size * math.sqrt(3.0))
+                out.weights, ts, te, out.ray_indices, len(rays), diagonal)
         reg = self.field.regularizer()
         if reg is not None:
             loss = loss + reg

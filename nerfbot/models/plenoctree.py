@@ -294,11 +294,11 @@ class PlenOctreeConfig:
     early_stop_transmittance: float = 1e-2
     """A ray stops after the leaf that brings its transmittance below this: 1e-2, the stop
     threshold of the PlenOctrees paper's renderer (volrend's ``stop_thresh``). On the tabletop
-    it renders 10% faster than 1e-3 for -0.06 dB (BENCHMARKS.md, issue 6)."""
+    it renders 10% faster than 1e-3 for -0.06 dB."""
     color_min_weight: float = 1e-2
     """Eval-mode rendering: leaf segments of at most this weight take the weight-averaged
     colour of their ray's other segments instead of being shaded (0: shade all). Measured on
-    the tabletop in BENCHMARKS.md, issue 6."""
+    the tabletop with ``docs/benchmarks/render_options.py``."""
     rays_per_batch: int = 4096
     """Rays per batch when fine-tuning the leaves."""
 
@@ -372,8 +372,9 @@ class PlenOctreeModel(Model):
     def _render_fused(self, rays: Rays) -> RenderOutput:
         """The fused kernel (:func:`nerfbot.kernels.octree.octree_render`): segments go to
         :data:`SLOT_SEGMENTS` scratch slots per ray (rays with more are rendered again with
-        exact room, and take their colour from that second pass), then :func:`~nerfbot.kernels.octree.pack_segments` packs them. The
-        background is read from its baked table (:meth:`~nerfbot.models.base.Model.baked_background`)."""
+        exact room, and take their colour from that second pass), then
+        :func:`~nerfbot.kernels.octree.pack_segments` packs them. The background is read from its
+        baked table (:meth:`~nerfbot.models.base.Model.baked_background`)."""
         n = len(rays)
         field = self.field
         o = rays.origins.float().contiguous().numpy()

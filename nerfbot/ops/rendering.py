@@ -64,7 +64,8 @@ class _SegmentScan(torch.autograd.Function):
     def forward(ctx, values, ray_indices):
         idx = ray_indices.contiguous()
         out = torch.empty_like(values)
-        _scan.segment_exclusive_cumsum(values.detach().contiguous().numpy(), idx.numpy(), out.numpy())
+        _scan.segment_exclusive_cumsum(values.detach().contiguous().numpy(), idx.numpy(),
+                                       out.numpy())
         ctx.save_for_backward(idx)
         return out
 

@@ -21,7 +21,7 @@ def keep_freed_memory() -> bool:
     is freed, so the kernel zero-fills every page again the next time. A training step allocates
     many such blocks (131k samples x 150 features is 80 MB). With mmap off and trimming only above
     2 GB, they come from the heap and are reused. Measured on the tabletop at 128x128, 60 steps,
-    one process each (BENCHMARKS.md, issue 2): ``ngp`` 0.30 against 0.33 s per step (the 180 s
+    one process each: ``ngp`` 0.30 against 0.33 s per step (the 180 s
     runs got as many steps as before), ``tensorf`` 0.55 against 0.88 s, peak memory within 5 %.
     The process keeps its peak memory reserved until it exits, as it would with jemalloc or
     tcmalloc.

@@ -12,6 +12,7 @@ from torch import nn
 from nerfbot.kernels import boxes as _bk
 from nerfbot.kernels import marching as _mk
 from nerfbot.kernels import use_kernels
+from nerfbot.ops.contraction import CONTRACTED_HALF, contract, step_scale, uncontract
 
 
 def ray_aabb(origins: torch.Tensor, directions: torch.Tensor, aabb: torch.Tensor,
@@ -130,33 +131,57 @@ class OccupancyGrid(nn.Module):
     (Instant-NGP): ``density = max(density * decay, sampled)``; see :meth:`update` for when a
     cell counts as occupied. Cells outside the scene bounds stay empty.
 
+    With ``contract`` the grid covers all of space through the scene contraction
+    (:mod:`nerfbot.ops.contraction`) around the bounds' enclosing cube (the inner cube, whose
+    centre and half-size are ``centre`` and ``half``): its cells tile the contracted cube of
+    twice the inner cube's size, the inner cube takes the middle G/2 cells per axis, and every
+    cell is inside the scene.
+
     Args:
         aabb: (2, 3) scene bounds, metres.
         resolution: G.
         threshold: opacity of one marching step above which a cell is occupied.
+        contract: cover all of space through the scene contraction.
     """
 
     def __init__(self, aabb: torch.Tensor, resolution: int = 64, threshold: float = 0.01,
-                 decay: float = 0.95):
+                 decay: float = 0.95, contract: bool = False):
         super().__init__()
         aabb = torch.as_tensor(aabb, dtype=torch.float32)
         center = 0.5 * (aabb[0] + aabb[1])
         half = 0.5 * float((aabb[1] - aabb[0]).max())
         self.resolution, self.threshold, self.decay = resolution, threshold, decay
+        self.contract = bool(contract)
+        self.half = half
+        #: edge of the bounds' enclosing cube, metres (where marching step sizes come from)
+        self.inner_size = 2.0 * half
+        extent = CONTRACTED_HALF * half if self.contract else half
         self.register_buffer("aabb", aabb.clone())
-        self.register_buffer("cube_min", center - half)
-        self.cube_size = 2.0 * half
+        self.register_buffer("centre", center.clone(), persistent=False)
+        self.register_buffer("cube_min", center - extent)
+        self.cube_size = 2.0 * extent
         self.register_buffer("density", torch.zeros(resolution ** 3))
-        self.register_buffer("occupied", torch.ones(resolution, resolution, resolution, dtype=torch.uint8))
+        self.register_buffer("occupied", torch.ones(resolution, resolution, resolution,
+                                                    dtype=torch.uint8))
         idx = torch.arange(resolution, dtype=torch.float32)
         centers = torch.stack(torch.meshgrid(idx, idx, idx, indexing="ij"), -1).reshape(-1, 3)
         self.register_buffer("_cell_index", centers, persistent=False)
-        inside = self._inside_bounds(self.cell_points(torch.full_like(centers, 0.5)))
-        self.register_buffer("inside", inside.reshape(resolution, resolution, resolution), persistent=False)
+        mid = self.cell_points(torch.full_like(centers, 0.5))
+        if self.contract:
+            inside = torch.ones(len(centers), dtype=torch.bool)
+            scale = step_scale((mid - self.centre) / half)
+        else:
+            inside = self._inside_bounds(mid)
+            scale = torch.ones(len(centers))
+        self.register_buffer("inside", inside.reshape(resolution, resolution, resolution),
+                             persistent=False)
+        #: (G^3,) how much longer than the base step a marching step through each cell is
+        self.register_buffer("step_scale", scale, persistent=False)
         self.occupied &= self.inside.to(torch.uint8)
 
     @property
     def cell_size(self) -> float:
+        """Cell edge in metres (of contracted space when ``contract``)."""
         return self.cube_size / self.resolution
 
     def _inside_bounds(self, centers: torch.Tensor) -> torch.Tensor:
@@ -166,16 +191,28 @@ class OccupancyGrid(nn.Module):
 
     def cell_points(self, offsets: torch.Tensor) -> torch.Tensor:
         """World points at ``offsets`` (G^3, 3) in [0, 1) within every cell: (G^3, 3)."""
-        return self.cube_min + (self._cell_index + offsets) * self.cell_size
+        p = self.cube_min + (self._cell_index + offsets) * self.cell_size
+        if self.contract:
+            p = self.centre + self.half * uncontract((p - self.centre) / self.half)
+        return p
+
+    def lookup_points(self, x: torch.Tensor) -> torch.Tensor:
+        """(N, 3) world points -> (N, 3) the points the grid is indexed by: ``x`` itself, or
+        under ``contract`` its contracted image in metres around ``centre``."""
+        if not self.contract:
+            return x
+        return self.centre + self.half * contract((x - self.centre) / self.half)
 
     @torch.no_grad()
     def update(self, density_fn, step_size: float, generator: torch.Generator | None = None,
                chunk: int = 1 << 18, prune: bool = True) -> float:
         """Re-sample every cell's density with ``density_fn(points (N, 3)) -> (N,)``.
 
-        A cell is occupied when its density exceeds ``min(mean density, threshold / step_size)``
-        (Instant-NGP): one marching step of ``step_size`` (m) through it would be at least
-        ``threshold`` opaque, or it is denser than average while the field is still faint.
+        A cell is occupied when its density times ``step_scale`` (the growth of the marching
+        step through it under the contraction; 1 otherwise) exceeds ``min(mean of the same,
+        threshold / step_size)`` (Instant-NGP; ``step_size`` in metres): one step through it
+        would be at least ``threshold`` opaque, or it is denser than average while the field is
+        still faint.
         The relative part matters early: with only the absolute threshold, nothing passes until
         the first cell crosses it, and then that update prunes almost the whole volume at once.
         Pruning an *untrained* field this way removes cells at random, so callers pass
@@ -189,8 +226,11 @@ class OccupancyGrid(nn.Module):
         new = torch.where(inside, new, torch.zeros_like(new))
         self.density.copy_(torch.maximum(self.density * self.decay, new))
         if prune:
-            mean = float(self.density[inside].mean()) if bool(inside.any()) else 0.0
-            occ = (self.density > min(mean, self.threshold / step_size)) & inside
+            # density times the cell's step over the base step: what one step through the
+            # cell sees, comparable between cells of a contracted grid
+            per_step = self.density * self.step_scale
+            mean = float(per_step[inside].mean()) if bool(inside.any()) else 0.0
+            occ = (per_step > min(mean, self.threshold / step_size)) & inside
             if bool(occ.any()):
                 self.occupied.copy_(occ.reshape(self.occupied.shape).to(torch.uint8))
         else:
@@ -202,16 +242,19 @@ class OccupancyGrid(nn.Module):
               max_per_ray: int = 1 << 30) -> PackedSamples:
         """March rays from ``t_begin`` to ``t_far`` (R,) and emit samples in occupied cells.
 
-        Step rule ``dt = clamp(t * cone, dt_min, dt_max)`` (metres), ``0 < dt_min <= dt_max``.
+        Step rule ``dt = clamp(t * cone, dt_min, dt_max)`` (metres), ``0 < dt_min <= dt_max``,
+        grown by ``max(1, n^2)`` under the contraction.
         CPU: :func:`march_kernels`. Other devices: :func:`march_reference`.
         """
         march_fn = march_kernels if use_kernels(origins, dtype=None) else march_reference
+        contraction = (self.centre, self.half) if self.contract else None
         return march_fn(origins, directions, t_begin, t_far, self.occupied, self.cube_min,
-                        self.cell_size, dt_min, dt_max, cone, max_per_ray)
+                        self.cell_size, dt_min, dt_max, cone, max_per_ray,
+                        contraction=contraction)
 
 
 def march_kernels(origins, directions, t_begin, t_far, occupied, cube_min, cell_size, dt_min,
-                  dt_max, cone=0.0, max_per_ray=1 << 30) -> PackedSamples:
+                  dt_max, cone=0.0, max_per_ray=1 << 30, contraction=None) -> PackedSamples:
     """The numba marcher (:mod:`nerfbot.kernels.marching`: a counting pass, then a filling
     one) on CPU tensors; arguments and result as :func:`march_reference`."""
     _check_steps(dt_min, dt_max)
@@ -221,11 +264,15 @@ def march_kernels(origins, directions, t_begin, t_far, occupied, cube_min, cell_
     tf = t_far.detach().float().contiguous().numpy()
     occ = occupied.numpy()
     gmin = cube_min.double().numpy()
+    if contraction is None:
+        ccentre, chalf = np.zeros(3), 0.0
+    else:
+        ccentre, chalf = contraction[0].double().numpy(), float(contraction[1])
     n_rays = o.shape[0]
     counts = np.empty(n_rays, np.int64)
     t_stop = np.empty(n_rays, np.float32)
-    args = (o, d, tb, tf, occ, gmin, float(cell_size), float(dt_min), float(dt_max),
-            float(cone), int(max_per_ray))
+    args = (o, d, tb, tf, occ, gmin, float(cell_size), ccentre, chalf, float(dt_min),
+            float(dt_max), float(cone), int(max_per_ray))
     _mk.march_count(*args, counts, t_stop)
     starts = np.cumsum(counts) - counts
     total = int(counts.sum())
@@ -238,13 +285,19 @@ def march_kernels(origins, directions, t_begin, t_far, occupied, cube_min, cell_
 
 
 def march_reference(origins, directions, t_begin, t_far, occupied, cube_min, cell_size, dt_min,
-                    dt_max, cone=0.0, max_per_ray=1 << 30) -> PackedSamples:
+                    dt_max, cone=0.0, max_per_ray=1 << 30, contraction=None) -> PackedSamples:
     """Plain-torch twin of the numba marcher (same step rule and cell test, any device).
 
     Marches all rays in lock-step, one step per iteration, so it is slow for long rays: use it
     for checks and for devices without the CPU kernels.
+
+    Args:
+        contraction: None, or (centre (3,), half) of the inner cube of the scene contraction:
+            ``occupied`` then covers contracted points and steps grow by ``max(1, n^2)``.
     """
     _check_steps(dt_min, dt_max)
+    if contraction is not None:
+        ccentre, chalf = contraction[0].double(), float(contraction[1])
     g = occupied.shape[0]
     t = t_begin.double().clone()
     tf = t_far.double()
@@ -253,8 +306,13 @@ def march_reference(origins, directions, t_begin, t_far, occupied, cube_min, cel
     alive = (t < tf) & (count < max_per_ray)
     while bool(alive.any()):
         dt = (t * cone).clamp(dt_min, dt_max)
+        if contraction is not None:
+            y0 = (origins.double() + t[:, None] * directions.double() - ccentre) / chalf
+            dt = dt * step_scale(y0)
         tm = t + 0.5 * dt
         p = origins.double() + tm[:, None] * directions.double()
+        if contraction is not None:
+            p = ccentre + chalf * contract((p - ccentre) / chalf)
         ijk = torch.floor((p - cube_min.double()) / cell_size).long()
         valid = ((ijk >= 0) & (ijk < g)).all(-1)
         ijk = ijk.clamp(0, g - 1)

@@ -86,7 +86,8 @@ def _occupancy_mask(model, x: torch.Tensor) -> Optional[torch.Tensor]:
     if occupied is None:
         return None
     g = occupied.shape[0]
-    idx = ((x - grid.cube_min) / grid.cell_size).floor().long().clamp(0, g - 1)
+    idx = ((grid.lookup_points(x) - grid.cube_min) / grid.cell_size).floor().long()
+    idx = idx.clamp(0, g - 1)
     return occupied[idx[:, 0], idx[:, 1], idx[:, 2]].bool()
 
 

@@ -13,7 +13,10 @@ Two decisions, each explained in :attr:`AutoChoice.reasons`:
    - transparent geoms → keep low-density structure (a 10x lower occupancy threshold, so faint
      glass is never pruned), the distortion loss against floaters, and threshold depth as the
      run's default depth query (Dex-NeRF);
-   - bounds and occupancy come from the manifest (the dataset reader already uses its bounds).
+   - bounds and occupancy come from the manifest (the dataset reader already uses its bounds);
+   - an unbounded scene (the reader's :func:`~nerfbot.data.bounds.choose_space`: content far
+     beyond the cameras, or cameras that see the scene from inside) gets the scene
+     contraction around the cameras' region (:func:`choose_for_dataset`).
 
 2. **How much to train** (:func:`choose_budget`), for ``--target-psnr P`` or ``--time-budget S``:
    the rows of a ``nerfbot bench`` table for this scene and method (``bench.json``), or, with
@@ -52,13 +55,13 @@ TRANSPARENT_DENSITY_NOISE = 0.0
 
 #: Dex-NeRF density threshold (1/m) of the default depth query for scenes with transparent
 #: geoms: the best threshold on the transparent pixels of the held-out glassware scene
-#: (glassware:1000, 1.38 cm MAE there; BENCHMARKS.md, issue 3), as the grasp task calibrates it.
+#: (glassware:1000, 1.38 cm MAE there; BENCHMARKS.md, section 3), as the grasp task calibrates it.
 TRANSPARENT_DEPTH_THRESHOLD = 5.0
 
 
 #: Share of the training pixels on shiny surfaces (manifest ``shiny_pixel_fraction``) below
-#: which a scene without glass gets view-independent colour. Measured with step budgets
-#: (BENCHMARKS.md, issue 4): on the tabletop (2.4 % shiny pixels) SH degree 0 led degree 4 by
+#: which a scene without glass gets view-independent colour. Measured with step budgets (ngp's
+#: renderer defaults of the time): on the tabletop (2.4 % shiny pixels) SH degree 0 led degree 4 by
 #: 0.2-0.35 dB at 120-240 steps and trailed by 0.1 dB at 568; on the glazed scene (5.5 %) it
 #: trailed by 1.3-2.2 dB. A two-scene estimate, set nearer the tabletop because guessing wrong
 #: costs more on the shiny side.
@@ -148,8 +151,6 @@ def choose_from_manifest(manifest: Optional[dict]) -> AutoChoice:
             f"{TRANSPARENT_DISTORTION}, no density noise (glass is a real veil), threshold depth "
             f"(Dex-NeRF, m = {TRANSPARENT_DEPTH_THRESHOLD:g} /m) as the default depth query of "
             "`nerfbot render`")
-    if manifest.get("bounds"):
-        choice.reasons.append("bounds from the manifest")
 
     known = set(option_names(choice.method))
     dropped = sorted(set(choice.options) - known)
@@ -157,6 +158,22 @@ def choose_from_manifest(manifest: Optional[dict]) -> AutoChoice:
         choice.options.pop(k)
     if dropped:
         choice.reasons.append(f"{choice.method} has no option(s) {dropped}: left at defaults")
+    return choice
+
+
+def choose_for_dataset(ds) -> AutoChoice:
+    """:func:`choose_from_manifest` for a loaded dataset, plus how to model its space: the
+    scene contraction when the reader found the scene unbounded (``ds.unbounded``)."""
+    choice = choose_from_manifest(ds.manifest)
+    reason = ds.extras.get("space") or f"bounds from {ds.aabb_source}"
+    if ds.unbounded and "contraction" in option_names(choice.method):
+        choice.options["contraction"] = True
+        choice.reasons.append(reason)
+    elif ds.unbounded:
+        choice.reasons.append(f"{reason}; {choice.method} has no contraction: the box around "
+                              "the cameras")
+    else:
+        choice.reasons.append(reason)
     return choice
 
 

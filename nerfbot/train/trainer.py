@@ -144,7 +144,8 @@ class Trainer:
             raise ValueError(f"{self.out}: --resume with {'; '.join(differences)}; resume with "
                              "the run's options or train into a new --out")
         spec = {**self.spec, **ckpt["spec"], "dataset": self.spec["dataset"]}
-        if canonical_text(spec) != canonical_text(self.spec):  # equal within tolerances: the run's wins
+        # equal within tolerances: the run's spec wins
+        if canonical_text(spec) != canonical_text(self.spec):
             self._rebuild_model(spec)
         load_model_state(self.model, ckpt, used)
         try:

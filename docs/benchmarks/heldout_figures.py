@@ -1,6 +1,6 @@
-"""Figures of BENCHMARKS.md, issue 5: held-out frames, ground truth beside each method's render.
+"""Figures of BENCHMARKS.md, section 4: held-out frames, ground truth beside each method's render.
 
-    python docs/benchmarks/issue5_figures.py BENCH_DIR
+    python docs/benchmarks/heldout_figures.py BENCH_DIR
 
 BENCH_DIR holds the captures ``mono``, ``multi``, ``art`` and the runs ``run_<capture>_<method>``
 made by the commands in BENCHMARKS.md. Writes ``docs/benchmarks/<capture>_heldout.png``.
