@@ -282,12 +282,22 @@ register_method("ngp", MethodSpec(
 register_method("plenoxels", MethodSpec(
     occupancy_build(PlenoxelField), lr=1e-1, adam_eps=1e-15, lr_final_factor=0.1,
     configs=(PlenoxelFieldConfig(), OccupancyModelConfig())))
+#: nerf's and mipnerf's MLPs and sample counts sized for a 2-core CPU: the papers' 8x256 trunks
+#: with 64 + 128 (nerf) or 128 + 128 (mipnerf) samples per ray run at 0.07-0.1 steps/s here,
+#: this 4x64 trunk with 16 + 32 (32 + 32) samples at 3-4 steps/s, and reaches 29.1 dB (29.7)
+#: on the 128x128 tabletop in 3000 steps (BENCHMARKS.md, section 2). The papers' settings:
+#: ``--option width=256 depth=8 skip=4 color_width=128 coarse_samples=64 fine_samples=128
+#: rays_per_batch=1024 --lr 5e-4`` (mipnerf: 128 + 128 samples).
+SMALL_MLP = dict(width=64, depth=4, skip=2, color_width=32)
+
 register_method("nerf", MethodSpec(
-    _build_nerf, lr=5e-4, adam_eps=1e-8, lr_final_factor=0.1,
-    configs=(NeRFFieldConfig(), HierarchicalModelConfig())))
+    _build_nerf, lr=2e-3, adam_eps=1e-8, lr_final_factor=0.1,
+    configs=(NeRFFieldConfig(**SMALL_MLP),
+             HierarchicalModelConfig(coarse_samples=16, fine_samples=32, rays_per_batch=256))))
 register_method("mipnerf", MethodSpec(
-    _build_mipnerf, lr=5e-4, adam_eps=1e-8, lr_final_factor=0.1,
-    configs=(MipNeRFFieldConfig(), MipNeRFModelConfig())))
+    _build_mipnerf, lr=2e-3, adam_eps=1e-8, lr_final_factor=0.1,
+    configs=(MipNeRFFieldConfig(**SMALL_MLP),
+             MipNeRFModelConfig(coarse_samples=32, fine_samples=32, rays_per_batch=256))))
 register_method("tensorf", MethodSpec(
     occupancy_build(TensoRFField), lr=2e-2, adam_eps=1e-15, lr_final_factor=0.1,
     configs=(TensoRFFieldConfig(), OccupancyModelConfig())))
