@@ -1,0 +1,217 @@
+"""Where an `ngp` training step and a render spend their time, per phase, against the machine's
+limits.
+
+usage: python docs/benchmarks/profile_ngp.py DATA [--warmup-steps 300] [--steps 100]
+                                             [--samples 32768] [--json OUT.json]
+
+Trains `ngp` with its defaults on DATA for ``--warmup-steps`` (untimed: the occupancy grid has
+pruned and the field has structure, as in the middle of a budget), then times ``--steps`` more,
+phase by phase, at ``--samples`` samples per batch, then one 128x128-class render of each test
+view. The phases of a step are the trainer's own calls: grid upkeep (`before_step`), drawing the
+batch, marching, the density-only pass that finds where rays saturate, the field's density and
+colour forward passes, compositing and losses, backward, and the optimiser. Timers synchronise
+nothing (CPU only) and add one `perf_counter` pair per call.
+
+The bound: a step that trains on M samples must at least (a) run the MLPs' FLOPs forward and
+backward (3x the forward's) for them, at the measured rate of a (M, 64) x (64, 64) matmul, and
+(b) stream the Adam state of every parameter (parameters, gradients and two moments read, three
+written) at the measured copy bandwidth. The hash encoding's gathers and scatters are left out
+of the bound (random access into 16 tables of 1 MB each; its share shows in the phases). Both rates are measured here, on the same machine,
+in the same run. Run alone: two processes on two cores halve each other's rate.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import torch
+
+from nerfbot.data import load_dataset
+from nerfbot.eval.evaluation import evaluate
+from nerfbot.models import occupancy as occupancy_module
+from nerfbot.train.trainer import TrainConfig, Trainer, batch_loss
+
+
+class PhaseTimer:
+    """Wall-clock seconds per phase name, exclusive of nested timed phases (the grid upkeep's
+    density queries count as upkeep, not as density). ``wrap(obj, attr, name)`` times every
+    call of ``obj.attr``; ``split_grad`` splits the calls by whether autograd records them."""
+
+    def __init__(self):
+        self.seconds = defaultdict(float)
+        self._children = []
+
+    def wrap(self, obj, attr: str, name: str, split_grad: bool = False) -> None:
+        fn = getattr(obj, attr)
+
+        def timed(*args, **kwargs):
+            key = name
+            if split_grad:
+                key = f"{name} (train)" if torch.is_grad_enabled() else f"{name} (no grad)"
+            self._children.append(0.0)
+            t0 = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                elapsed = time.perf_counter() - t0
+                nested = self._children.pop()
+                self.seconds[key] += elapsed - nested
+                if self._children:
+                    self._children[-1] += elapsed
+
+        setattr(obj, attr, timed)
+
+
+def matmul_gflops(n: int = 1024, repeats: int = 20) -> float:
+    """Measured float32 matmul rate (GFLOP/s) with torch's threads."""
+    a, b = torch.randn(n, n), torch.randn(n, n)
+    a @ b
+    t0 = time.perf_counter()
+    for _ in range(repeats):
+        a @ b
+    return 2 * n ** 3 * repeats / (time.perf_counter() - t0) / 1e9
+
+
+def mlp_like_gflops(rows: int = 1 << 15, width: int = 64, repeats: int = 20) -> float:
+    """Measured rate (GFLOP/s) of the matmul shape a tiny MLP runs: (rows, 64) x (64, 64)."""
+    x, w = torch.randn(rows, width), torch.randn(width, width)
+    x @ w
+    t0 = time.perf_counter()
+    for _ in range(repeats):
+        x @ w
+    return 2 * rows * width * width * repeats / (time.perf_counter() - t0) / 1e9
+
+
+def copy_gbps(mb: int = 256, repeats: int = 10) -> float:
+    """Measured memory bandwidth (GB/s) of a large copy (read + write counted)."""
+    src = torch.empty(mb * (1 << 20) // 4)
+    dst = torch.empty_like(src)
+    dst.copy_(src)
+    t0 = time.perf_counter()
+    for _ in range(repeats):
+        dst.copy_(src)
+    return 2 * src.numel() * 4 * repeats / (time.perf_counter() - t0) / 1e9
+
+
+def mlp_flops_per_sample(model) -> float:
+    """Forward FLOPs of the density and colour MLPs for one sample (2 per multiply-add)."""
+    total = 0
+    for mlp in (model.field.density_mlp, model.field.color_mlp):
+        total += sum(2 * m.in_features * m.out_features for m in mlp
+                     if isinstance(m, torch.nn.Linear))
+    return float(total)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("data")
+    p.add_argument("--warmup-steps", type=int, default=300)
+    p.add_argument("--steps", type=int, default=100)
+    p.add_argument("--samples", type=int, default=1 << 15)
+    p.add_argument("--json", type=Path, default=None)
+    p.add_argument("--out", type=Path, default=Path("profile_run"),
+                   help="run folder of the warm-up training (new or empty)")
+    args = p.parse_args()
+
+    ds = load_dataset(args.data)
+    options = {"samples_per_batch": args.samples}
+    trainer = Trainer(ds, args.out, TrainConfig(method="ngp", max_steps=args.warmup_steps,
+                                                seed=0, progress=False, options=options))
+    trainer.train()
+    model, bank, gen = trainer.model, trainer.bank, trainer.generator
+
+    timer = PhaseTimer()
+    timer.wrap(model, "before_step", "grid upkeep")
+    timer.wrap(bank, "sample", "draw batch")
+    timer.wrap(model, "_march", "march")
+    timer.wrap(model.field, "density", "density", split_grad=True)
+    timer.wrap(model.field, "color", "colour", split_grad=True)
+    timer.wrap(occupancy_module, "composite", "composite")
+    timer.wrap(occupancy_module, "distortion_loss", "distortion loss")
+    timer.wrap(occupancy_module, "render_weights", "transmittance (no grad)")
+
+    model.train()
+    marched, kept, rays = 0, 0, 0
+    orig_march = model._march
+
+    def counting_march(*a, **k):
+        nonlocal marched
+        s = orig_march(*a, **k)
+        marched += len(s)
+        return s
+
+    model._march = counting_march
+    step_seconds = []
+    backward = optimiser = 0.0
+    n_rays = trainer.n_rays
+    last = trainer.last_samples
+    for i in range(args.steps):
+        t0 = time.perf_counter()
+        progress = (args.warmup_steps + i) / (args.warmup_steps + args.steps)
+        model.before_step(args.warmup_steps + i, gen, progress)
+        n_rays = model.rays_for_next_batch(last, n_rays)
+        loss, out, _ = batch_loss(model, bank, n_rays, gen, progress)
+        trainer.optimizer.zero_grad(set_to_none=True)
+        t1 = time.perf_counter()
+        loss.backward()
+        t2 = time.perf_counter()
+        trainer.optimizer_step()
+        t3 = time.perf_counter()
+        backward += t2 - t1
+        optimiser += t3 - t2
+        last = out.num_samples
+        kept += out.num_samples
+        rays += n_rays
+        step_seconds.append(t3 - t0)
+    model._march = orig_march
+    marched_per_step = marched / args.steps
+    total = sum(step_seconds)
+    phases = dict(timer.seconds)
+    phases["backward"] = backward
+    phases["optimiser (Adam)"] = optimiser
+    phases["other (Python, losses, glue)"] = max(0.0, total - sum(phases.values()))
+
+    steps = args.steps
+    params = sum(p.numel() for p in model.parameters())
+    flops = mlp_flops_per_sample(model)
+    gflops, mlp_gflops, gbps = matmul_gflops(), mlp_like_gflops(), copy_gbps()
+    kept_per_step = kept / steps
+    bound_mlp = 3 * flops * kept_per_step / (mlp_gflops * 1e9)
+    adam_bytes = params * 4 * 7          # read p, g, m, v; write p, m, v
+    bound_adam = adam_bytes / (gbps * 1e9)
+    bound = bound_mlp + bound_adam
+
+    model.eval()
+    t0 = time.perf_counter()
+    metrics = evaluate(model, ds, "test", with_ssim=False)
+    eval_s = time.perf_counter() - t0
+
+    median_step = sorted(step_seconds)[steps // 2]
+    by_cost = sorted(phases.items(), key=lambda kv: -kv[1])
+    result = {
+        "data": str(args.data), "warmup_steps": args.warmup_steps, "steps": steps,
+        "samples_per_batch": args.samples, "ms_per_step_median": 1e3 * median_step,
+        "ms_per_step_mean": 1e3 * total / steps,
+        "phases_ms_per_step": {k: 1e3 * v / steps for k, v in by_cost},
+        "rays_per_step": rays / steps, "marched_samples_per_step": marched_per_step,
+        "kept_samples_per_step": kept_per_step, "params": params,
+        "mlp_flops_per_sample_forward": flops,
+        "machine": {"matmul_gflops": gflops, "mlp_shape_gflops": mlp_gflops,
+                    "copy_gbps": gbps, "threads": torch.get_num_threads()},
+        "bound_ms": {"mlp_fwd_bwd": 1e3 * bound_mlp, "adam_dense": 1e3 * bound_adam,
+                     "total": 1e3 * bound},
+        "step_over_bound": (total / steps) / bound,
+        "render_ms_per_image": metrics["render_ms_per_image"],
+        "eval_seconds": eval_s, "psnr": metrics["psnr"],
+    }
+    print(json.dumps(result, indent=2))
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=2))
+
+
+if __name__ == "__main__":
+    main()
