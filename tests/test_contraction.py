@@ -174,5 +174,7 @@ def test_choose_space_from_manifest_bounds_and_cameras():
     away = spots + np.c_[np.cos(a := rng.uniform(0, 2 * np.pi, 30)), np.sin(a), np.zeros(30)]
     outward = _look_at(spots, away)
     space = choose_space(table, "cameras", outward)
-    assert space.contraction and "inside" in space.reason
+    assert not space.contraction and "inside" in space.reason   # the box around the cameras
+    lo, hi = space.aabb
+    assert np.all(lo <= spots.min(0)) and np.all(hi >= spots.max(0))
     assert not choose_space(table, "cameras", inward).contraction

@@ -21,10 +21,11 @@ Camera-based rule (all distances in metres):
    In both rules the cap is skipped only if a camera sits at the centre itself (it would give
    an empty box).
 
-Whether the bounds are enough (:func:`choose_space`, used by ``--method auto``): a box models
-only what lies inside it. Outdoors the content reaches far beyond the cameras, and seen from
-inside a room the cameras' axes meet nowhere; both get the scene contraction around the
-cameras' region instead (:func:`camera_region`).
+Whether the bounds are enough (:func:`choose_space`, used by the reader): a box models only
+what lies inside it. Outdoors the content reaches far beyond the cameras: such a scene is
+unbounded, bounded by the cameras' region (:func:`camera_region`) and modelled with the scene
+contraction around it. Seen from inside a room the cameras' axes meet nowhere: the box is the
+cameras' region.
 """
 
 from __future__ import annotations
@@ -207,8 +208,11 @@ def choose_space(aabb, aabb_source: str, c2w) -> SpaceChoice:
       cameras' region (:func:`camera_region`), the content reaches far beyond the cameras:
       contraction around that region. Otherwise the box.
     - Bounds estimated from the cameras: cameras that look at one point (median miss angle
-      under :data:`CONVERGENCE_ANGLE`) keep the estimated box; cameras that do not (a room or
-      a street seen from inside) get the contraction around their region.
+      under :data:`CONVERGENCE_ANGLE`) keep the estimated box; cameras that do not (a room
+      seen from inside) get the box around their region, which holds what they stand in
+      (the estimate from their axes shrinks to a small cube between them). The contraction
+      did not help there: on `room:3` captured without a manifest it scored 24.4 dB against
+      the box's 24.8 dB after 120 s (BENCHMARKS.md, section 8).
     """
     aabb = np.asarray(aabb, dtype=np.float64)
     region = camera_region(c2w)
@@ -224,9 +228,9 @@ def choose_space(aabb, aabb_source: str, c2w) -> SpaceChoice:
         return SpaceChoice(False, aabb, "bounds from the manifest: a box")
     miss = axes_miss_angle(c2w)
     if miss > CONVERGENCE_ANGLE:
-        return SpaceChoice(True, region, (
+        return SpaceChoice(False, region, (
             f"seen from inside: the cameras' axes miss their common point by {miss:.0f} degrees "
-            f"(median, > {CONVERGENCE_ANGLE:g}); scene contraction around the cameras' region "
+            f"(median, > {CONVERGENCE_ANGLE:g}); a box around the cameras' region "
             f"({region_edge:.3g} m)"))
     return SpaceChoice(False, aabb, (f"bounds from the cameras (axes meet within {miss:.0f} "
                                      "degrees): a box"))

@@ -356,7 +356,7 @@ def load_dataset(path: Union[str, os.PathLike], *, aabb=None, background=None) -
     if source == "manifest":
         _check_cameras_near_scene(specs, c2w, box)
     space = choose_space(box, source, c2w)
-    if space.contraction:
+    if not np.array_equal(space.aabb, box):
         box = space.aabb
         log.info("%s", space.reason)
 
