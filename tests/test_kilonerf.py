@@ -219,7 +219,7 @@ def _model(early_stop=1e-4, render_precision="fp32", **kilo) -> KiloNeRFModel:
     model = KiloNeRFModel(field, FixedBackground((0.2, 0.4, 0.9)), AABB,
                           OccupancyModelConfig(grid_resolution=16, render_steps=128,
                                                early_stop_transmittance=early_stop,
-                                               color_min_weight=0.0),
+                                               shade_min_weight=0.0),
                           KiloNeRFConfig(render_precision=render_precision, **kilo))
     occ = torch.rand(16, 16, 16, generator=torch.Generator().manual_seed(3)) < 0.6
     model.grid.occupied.copy_((occ & model.grid.inside).to(torch.uint8))

@@ -417,7 +417,7 @@ def _kilonerf_model() -> KiloNeRFModel:
     model = KiloNeRFModel(field, FixedBackground((0.2, 0.4, 0.9)), AABB,
                           OccupancyModelConfig(grid_resolution=16, render_steps=128,
                                                early_stop_transmittance=1e-9,
-                                               color_min_weight=0.0),
+                                               shade_min_weight=0.0),
                           KiloNeRFConfig(render_min_weight=0.0))
     occ = torch.rand(16, 16, 16, generator=torch.Generator().manual_seed(3)) < 0.6
     model.grid.occupied.copy_((occ & model.grid.inside).to(torch.uint8))

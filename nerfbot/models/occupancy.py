@@ -45,7 +45,7 @@ class OccupancyModelConfig:
     saturates (rounds of marching with a density-only pass find it)."""
     samples_per_batch: int = 1 << 17
     """Target number of samples per training batch; the ray count adapts to it."""
-    color_min_weight: float = 1e-4
+    shade_min_weight: float = 1e-4
     """Rendering evaluates the colour of a sample only if it weighs at least this much in its
     pixel; lighter ones are black (on the trained tabletop 60 % of the samples, together under
     7e-4 of any pixel). 0: every colour."""
@@ -92,7 +92,7 @@ class OccupancyModelConfig:
             if getattr(self, name) < 1:
                 raise ValueError(f"option {name}: must be >= 1, got {getattr(self, name)}")
         for name in ("grid_warmup_steps", "grid_threshold", "cone_angle", "distortion_weight",
-                     "density_noise", "color_min_weight"):
+                     "density_noise", "shade_min_weight"):
             if getattr(self, name) < 0:
                 raise ValueError(f"option {name}: must be >= 0, got {getattr(self, name)}")
         for name in ("early_stop_transmittance", "supersample_from"):
@@ -198,7 +198,7 @@ class OccupancyModel(Model):
 
         Returns packed (ray_indices, t_starts, t_ends) of the kept samples (sorted by ray, in t
         order), their densities and (``with_color``) colours, else None: colours are evaluated
-        only for samples weighing at least ``color_min_weight``. With ``drop_hidden``
+        only for samples weighing at least ``shade_min_weight``. With ``drop_hidden``
         a sample is kept only when the transmittance before it is above
         ``stop_transmittance``; otherwise the last round's samples are all kept.
         """
@@ -241,7 +241,7 @@ class OccupancyModel(Model):
         if with_color:
             feat = torch.cat([p[4] for p in pieces])[order]
             weights, _ = render_weights(sigma, ts, te, gidx, n)
-            shown = torch.nonzero(weights >= self.config.color_min_weight).squeeze(-1)
+            shown = torch.nonzero(weights >= self.config.shade_min_weight).squeeze(-1)
             rgb = torch.zeros(len(gidx), 3, device=t_begin.device)
             if shown.numel():
                 rgb[shown] = self.field.color(feat[shown], rays.directions[gidx[shown]],
