@@ -41,8 +41,9 @@ class Dataset:
             ``unbounded`` scene, the cube around the cameras (the inner cube of a contracted
             model).
         aabb_source: "manifest", "cameras" or "user".
-        unbounded: the content reaches beyond ``aabb`` (outdoors, or seen from inside;
-            :func:`nerfbot.data.bounds.choose_space`): model it with the scene contraction.
+        unbounded: the content reaches far beyond the cameras, and beyond ``aabb``
+            (outdoors; :func:`nerfbot.data.bounds.choose_space`): model it with the scene
+            contraction.
         manifest: the scene manifest dict written by ``sims``, or None.
         background: "learned" (function of ray direction), or an RGB triple in [0, 1] when the
             images were composited on a fixed colour.

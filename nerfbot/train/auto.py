@@ -15,8 +15,8 @@ Two decisions, each explained in :attr:`AutoChoice.reasons`:
      run's default depth query (Dex-NeRF);
    - bounds and occupancy come from the manifest (the dataset reader already uses its bounds);
    - an unbounded scene (the reader's :func:`~nerfbot.data.bounds.choose_space`: content far
-     beyond the cameras, or cameras that see the scene from inside) gets the scene
-     contraction around the cameras' region (:func:`choose_for_dataset`).
+     beyond the cameras) gets the scene contraction around the cameras' region
+     (:func:`choose_for_dataset`).
 
 2. **How much to train** (:func:`choose_budget`), for ``--target-psnr P`` or ``--time-budget S``:
    the rows of a ``nerfbot bench`` table for this scene and method (``bench.json``), or, with
