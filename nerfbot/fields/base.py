@@ -139,25 +139,20 @@ class BoxNormalizer(nn.Module):
         return float(self.cube_size)
 
 
-class ContractedNormalizer(nn.Module):
+class ContractedNormalizer(BoxNormalizer):
     """Maps all of space into [0, 1]^3 through the scene contraction
     (:mod:`nerfbot.ops.contraction`): the cube enclosing the scene bounds (the inner cube) to
     [1/4, 3/4]^3, everything beyond it into the shell around that.
 
-    Attributes match :class:`BoxNormalizer`'s (``cube_min``, ``cube_size`` are the inner cube's).
+    Attributes are :class:`BoxNormalizer`'s (``cube_min``, ``cube_size`` are the inner cube's)
+    plus its ``centre``.
     """
 
     contracted = True
 
     def __init__(self, aabb):
-        super().__init__()
-        aabb = torch.as_tensor(aabb, dtype=torch.float32)
-        center = 0.5 * (aabb[0] + aabb[1])
-        half = 0.5 * (aabb[1] - aabb[0]).max()
-        self.register_buffer("aabb", aabb.clone())
-        self.register_buffer("centre", center)
-        self.register_buffer("cube_min", center - half)
-        self.register_buffer("cube_size", 2.0 * half)
+        super().__init__(aabb)
+        self.register_buffer("centre", self.cube_min + 0.5 * self.cube_size)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         half = 0.5 * self.cube_size
