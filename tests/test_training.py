@@ -40,15 +40,17 @@ def _mean_colour_psnr(ds) -> float:
 
 
 def test_ngp_trains_tiny_capture_to_threshold(tiny_capture, tmp_path):
-    """ngp on 16 views of 32x32 reaches >= 20 dB test PSNR in 120 steps.
+    """ngp on 16 views of 32x32 reaches >= 20 dB test PSNR, and 8 dB above the mean colour,
+    in 150 steps.
 
-    Measured here: ~23.5 dB after 120 steps (test PSNR plateaus near 23.5 dB with only 16 tiny
-    views: unseen test views limit it, training PSNR keeps rising past 28 dB). The trivial
-    mean-colour predictor scores ~11 dB, so 20 dB can only be reached by learning the scene,
-    and the 3.5 dB margin absorbs run-to-run variation across platforms.
+    Measured here: 23.7 dB after 150 steps, 22.9 after 120 (test PSNR plateaus near 24 dB with
+    only 16 tiny views: unseen test views limit it, training PSNR keeps rising past 28 dB). While
+    the field is translucent a step trains every marched sample (``full_march_kept_fraction``),
+    which is faster per second but slower per step than marching in rounds. The mean-colour
+    predictor scores ~15 dB, so 20 dB can only be reached by learning the scene.
     """
     ds = load_dataset(tiny_capture[0])
-    cfg = TrainConfig(method="ngp", max_steps=120, seed=0, progress=False, options=TINY_NGP)
+    cfg = TrainConfig(method="ngp", max_steps=150, seed=0, progress=False, options=TINY_NGP)
     trainer = Trainer(ds, tmp_path / "run", cfg)
     trainer.train()
     metrics = evaluate(trainer.model, ds, "test")
@@ -60,7 +62,7 @@ def test_ngp_trains_tiny_capture_to_threshold(tiny_capture, tmp_path):
     assert float(trainer.model.grid.occupied.float().mean()) < 0.5
     # the run folder reloads to the same renders
     model, info = load_model(tmp_path / "run")
-    assert info["step"] == 120
+    assert info["step"] == 150
     again = evaluate(model, ds, "test", with_ssim=False)
     assert again["psnr"] == pytest.approx(metrics["psnr"], abs=1e-4)
 

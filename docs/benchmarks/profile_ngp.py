@@ -138,16 +138,25 @@ def main() -> None:
     timer.wrap(occupancy_module, "render_weights", "transmittance (no grad)")
 
     model.train()
-    marched, kept, rays = 0, 0, 0
-    orig_march = model._march
+    density_only, kept, rays, full_march_steps = 0, 0, 0, 0
+    in_rounds = False
+    timed_rounds, timed_density = model._march_until_opaque, model.field.density
 
-    def counting_march(*a, **k):
-        nonlocal marched
-        s = orig_march(*a, **k)
-        marched += len(s)
-        return s
+    def counting_rounds(*a, **k):
+        nonlocal in_rounds
+        in_rounds = True
+        try:
+            return timed_rounds(*a, **k)
+        finally:
+            in_rounds = False
 
-    model._march = counting_march
+    def counting_density(x, *a, **k):
+        nonlocal density_only
+        if in_rounds:
+            density_only += len(x)
+        return timed_density(x, *a, **k)
+
+    model._march_until_opaque, model.field.density = counting_rounds, counting_density
     step_seconds = []
     backward = optimiser = 0.0
     n_rays = trainer.n_rays
@@ -155,6 +164,7 @@ def main() -> None:
     for i in range(args.steps):
         t0 = time.perf_counter()
         progress = (args.warmup_steps + i) / (args.warmup_steps + args.steps)
+        full_march_steps += bool(model.train_full_march)
         model.before_step(args.warmup_steps + i, gen, progress)
         n_rays = model.rays_for_next_batch(last, n_rays)
         loss, out, _ = batch_loss(model, bank, n_rays, gen, progress)
@@ -170,8 +180,7 @@ def main() -> None:
         kept += out.num_samples
         rays += n_rays
         step_seconds.append(t3 - t0)
-    model._march = orig_march
-    marched_per_step = marched / args.steps
+    model._march_until_opaque, model.field.density = timed_rounds, timed_density
     total = sum(step_seconds)
     phases = dict(timer.seconds)
     phases["backward"] = backward
@@ -206,8 +215,9 @@ def main() -> None:
         "samples_per_batch": args.samples, "ms_per_step_median": 1e3 * median_step,
         "ms_per_step_mean": 1e3 * total / steps,
         "phases_ms_per_step": {k: 1e3 * v / steps for k, v in by_cost},
-        "rays_per_step": rays / steps, "marched_samples_per_step": marched_per_step,
-        "kept_samples_per_step": kept_per_step, "params": params,
+        "rays_per_step": rays / steps, "density_only_samples_per_step": density_only / steps,
+        "trained_samples_per_step": kept_per_step, "full_march_steps": full_march_steps,
+        "params": params,
         "mlp_flops_per_sample_forward": flops,
         "machine": {"matmul_gflops": gflops, "mlp_shape_gflops": mlp_gflops,
                     "copy_gbps": gbps, "threads": torch.get_num_threads()},

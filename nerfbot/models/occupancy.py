@@ -43,6 +43,13 @@ class OccupancyModelConfig:
     train_early_termination: bool = True
     """In training, march and evaluate colours and gradients only up to where the ray
     saturates (rounds of marching with a density-only pass find it)."""
+    full_march_kept_fraction: float = 0.7
+    """With ``train_early_termination``: while more than this fraction of a full march's
+    samples lie before their ray saturates (a field not yet opaque), training skips the
+    density-only pass and trains every marched sample; the choice is re-made after each step
+    from that step's samples. In the step profile of BENCHMARKS.md (section 7) a sample costs
+    about 0.85 us in the density-only pass and 2.0 us trained, so the pass pays for itself only
+    when it drops over 30 % of the samples. 1: always march in rounds."""
     samples_per_batch: int = 1 << 17
     """Target number of samples per training batch; the ray count adapts to it."""
     shade_min_weight: float = 1e-4
@@ -95,7 +102,7 @@ class OccupancyModelConfig:
                      "density_noise", "shade_min_weight"):
             if getattr(self, name) < 0:
                 raise ValueError(f"option {name}: must be >= 0, got {getattr(self, name)}")
-        for name in ("early_stop_transmittance", "supersample_from"):
+        for name in ("early_stop_transmittance", "supersample_from", "full_march_kept_fraction"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"option {name}: must be in [0, 1], got {getattr(self, name)}")
 
@@ -134,6 +141,14 @@ class OccupancyModel(Model):
                              "contracted coordinates (ngp does)")
         self.dt_min = self.grid.inner_size * math.sqrt(3.0) / cfg.render_steps
         self.dt_max = 8.0 * self.dt_min if cfg.cone_angle > 0 else self.dt_min
+        # whether the next training step marches fully, without the density-only pass; saved
+        # with the model so that a resumed run makes the same choices
+        self.register_buffer("train_full_march", torch.zeros((), dtype=torch.bool))
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # checkpoints written before the buffer existed resume marching in rounds
+        state_dict.setdefault(prefix + "train_full_march", torch.zeros((), dtype=torch.bool))
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     @property
     def supersample(self) -> int:
@@ -164,30 +179,44 @@ class OccupancyModel(Model):
 
     def render_rays(self, rays: Rays, generator=None, cond=None) -> RenderOutput:
         """Training mode: samples from jittered starts up to where each ray saturates
-        (:meth:`_march_until_opaque`), gradients through all of them. Eval mode: the same
-        marching from the ray's entry, colours of every kept sample, no gradients."""
+        (:meth:`_march_until_opaque`) or, while the field is mostly translucent, all of them
+        (``full_march_kept_fraction``); gradients through all of them. Eval mode: marching in
+        rounds from the ray's entry, colours of the samples that show, no gradients."""
         if not self.training:
             return self._render_inference(rays, cond)
         t_near, t_far, _ = self.ray_range(rays)
         jitter = torch.rand(t_near.shape, generator=generator, device=t_near.device)
         t_begin = t_near + jitter * self.dt_min
         n = len(rays)
-        if self.config.train_early_termination:
+        rounds = self.config.train_early_termination and not bool(self.train_full_march)
+        if rounds:
             with torch.no_grad():
                 ray_idx, ts, te, _, _ = self._march_until_opaque(rays, t_begin, t_far, cond,
                                                                  TRAIN_STOP_TRANSMITTANCE)
+                full = self._march(rays, t_begin, t_far).ray_indices.numel()
+                self._choose_train_march(ray_idx.numel(), full)
         else:
             s = self._march(rays, t_begin, t_far)
             ray_idx, ts, te = s.ray_indices, s.t_starts, s.t_ends
         o, d = rays.origins[ray_idx], rays.directions[ray_idx]
         x = o + d * (0.5 * (ts + te))[:, None]
         sigma, feat = self.field.density(x, gather_rows(cond, ray_idx))
+        if self.config.train_early_termination and not rounds:
+            with torch.no_grad():
+                _, trans = render_weights(sigma.detach().double(), ts, te, ray_idx, n)
+                self._choose_train_march(int((trans > TRAIN_STOP_TRANSMITTANCE).sum()),
+                                         ray_idx.numel())
         if self.config.density_noise > 0:
             noise = torch.randn(sigma.shape, generator=generator, device=sigma.device)
             sigma = sigma * torch.exp(self.config.density_noise * noise)
         rgb = self.field.color(feat, d, gather_rows(cond, ray_idx))
         return composite(sigma, rgb, ts, te, ray_idx, n, self.background(rays.directions),
                          t_far, rays.z_per_t, with_median=False)
+
+    def _choose_train_march(self, kept: int, marched: int) -> None:
+        """Set how the next training step marches from this one's counts: ``kept`` of the
+        ``marched`` samples of a full march lie before their ray saturates."""
+        self.train_full_march.fill_(kept > self.config.full_march_kept_fraction * marched)
 
     def _march_until_opaque(self, rays: Rays, t_begin: torch.Tensor, t_far: torch.Tensor, cond,
                             stop_transmittance: float, with_color: bool = False,
