@@ -51,6 +51,17 @@ class Model(nn.Module, metaclass=abc.ABCMeta):
                     cond: Optional[torch.Tensor] = None) -> RenderOutput:
         """Render (R,) rays; in eval mode without randomness."""
 
+    def render_rays_differentiable(self, rays: Rays, cond: Optional[torch.Tensor] = None
+                                   ) -> RenderOutput:
+        """Render (R,) rays as in eval mode (no randomness) but with gradients w.r.t. the
+        rays' origins and directions, for estimating camera poses through a frozen model
+        (:mod:`nerfbot.query.localise`). Models whose rendering cannot carry such gradients
+        raise NotImplementedError."""
+        raise NotImplementedError(
+            f"{type(self).__name__} cannot render with gradients w.r.t. its rays; pose "
+            "estimation needs a method rendered by the occupancy-grid marcher (ngp, plenoxels, "
+            "tensorf, ...)")
+
     #: Rays per pixel axis when training and rendering colour: S x S rays through each pixel,
     #: their colours averaged (see :func:`nerfbot.train.trainer.batch_loss`); 1: the pixel centre.
     supersample: int = 1

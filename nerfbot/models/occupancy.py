@@ -213,6 +213,23 @@ class OccupancyModel(Model):
         return composite(sigma, rgb, ts, te, ray_idx, n, self.background(rays.directions),
                          t_far, rays.z_per_t, with_median=False)
 
+    def render_rays_differentiable(self, rays: Rays, cond=None) -> RenderOutput:
+        """Eval-mode samples (marched in rounds from each ray's entry until it saturates, no
+        jitter or noise), evaluated with gradients flowing to the rays through the sample
+        positions and view directions."""
+        n = len(rays)
+        t_near, t_far, _ = self.ray_range(rays)
+        with torch.no_grad():
+            ray_idx, ts, te, _, _ = self._march_until_opaque(
+                rays, t_near.detach(), t_far.detach(), cond,
+                self.config.early_stop_transmittance)
+        o, d = rays.origins[ray_idx], rays.directions[ray_idx]
+        x = o + d * (0.5 * (ts + te))[:, None]
+        sigma, feat = self.field.density(x, gather_rows(cond, ray_idx))
+        rgb = self.field.color(feat, d, gather_rows(cond, ray_idx))
+        return composite(sigma, rgb, ts, te, ray_idx, n, self.background(rays.directions),
+                         t_far, rays.z_per_t, with_median=False)
+
     def _choose_train_march(self, kept: int, marched: int) -> None:
         """Set how the next training step marches from this one's counts: ``kept`` of the
         ``marched`` samples of a full march lie before their ray saturates."""

@@ -1,0 +1,479 @@
+"""Plan and drive through a room with a map made from images, in MuJoCo physics.
+
+``python -m tasks.navigate --scene room --scenes 3 --trials 10 --seed 0 --map nerf --pose gt``
+
+For each of ``--scenes`` room seeds (``--seed`` on):
+
+1. the room is captured from inside (posed RGB and a simulated depth sensor, the zoo's ``inside``
+   rig) and ``ngp`` is trained on the images, unless cached runs exist;
+2. a floor map is made for a cylindrical base (:mod:`tasks.nav_map`) from ``--map``:
+
+   - ``nerf``: the field's density on a 3D grid over the room, thresholded
+     (:func:`nerfbot.query.density.occupancy_volume`);
+   - ``sensor``: the depth sensor's readings of the training views fused into a TSDF (open3d);
+   - ``gt``: the scene's true geometry;
+
+3. ``--trials`` start/goal pairs are drawn where the base can stand on the true map, at least
+   ``--min-distance`` apart; for each, A* on the map (inflated by the base's radius and a
+   margin) gives the warm start, shortcuts shorten it and, on a field map, trajectory
+   optimisation through the field's density (NeRF-Nav's collision cost) refines it;
+4. the base drives the path in physics, steering by its true pose (``--pose gt``) or by poses
+   estimated from its own camera every few control steps (``--pose inerf`` or ``multistart``,
+   :mod:`nerfbot.query.localise`). Success: within 10 cm of the goal without any contact.
+
+Outputs in ``--out``: ``log.json`` (every trial), ``summary.json`` and one top-down PNG per
+trial in ``trials/`` (map, planned and driven paths, contacts).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Optional
+
+import cv2
+import mujoco
+import numpy as np
+import open3d as o3d
+from tqdm import tqdm
+
+import sims  # noqa: F401  (selects the GL backend before mujoco is imported)
+from nerfbot.data import load_dataset
+from nerfbot.data.writers import write_json_atomic
+from nerfbot.query.density import OccupancyVolume, occupancy_volume
+from nerfbot.query.localise import InerfConfig, MultiStartConfig, inerf, localise_multistart
+from nerfbot.train.checkpoints import CHECKPOINT
+from nerfbot.train.runs import load_model
+from nerfbot.train.trainer import TrainConfig, Trainer
+from sims.camera import CaptureCamera
+from sims.capture import capture, set_lighting
+from sims.rigs import default_rig, make_test_rig
+from sims.robot import (RobotConfig, add_robot, robot_ids, robot_pose, set_robot_pose)
+from sims.scene import CAPTURE_CAMERA, resolve_scene
+from sims.sensor import DepthSensorModel
+from tasks.nav_execute import DriveConfig, DriveLog, drive
+from tasks.nav_map import (FloorMap, RobotBody, floor_map_from_volume, room_area,
+                           true_floor_map)
+from tasks.nav_planner import (PlanningError, TrajectoryConfig, optimise_trajectory,
+                               path_length, plan_grid_path, shortcut)
+
+log = logging.getLogger(__name__)
+
+MAPS = ("nerf", "sensor", "gt")
+POSES = ("gt", "inerf", "multistart")
+
+
+@dataclass
+class NavTaskConfig:
+    """Settings of a navigation experiment (lengths in metres)."""
+
+    scene: str = "room"
+    scenes: int = 3
+    trials: int = 10
+    """Start/goal pairs per scene."""
+    seed: int = 0
+    map: str = "nerf"
+    pose: str = "gt"
+    capture_views: int = 150
+    capture_test_views: int = 10
+    capture_size: int = 128
+    train_steps: int = 2000
+    method: str = "ngp"
+    train_options: dict = field(default_factory=dict)
+    map_cell: float = 0.05
+    threshold: Optional[float] = None
+    """Obstacle density threshold of a field map, 1/m (None: the default of
+    :func:`nerfbot.query.density.occupancy_volume`)."""
+    margin: float = 0.03
+    """Planning keeps the base this much farther from obstacles than its radius."""
+    min_distance: float = 1.5
+    robot: RobotConfig = RobotConfig()
+    drive: DriveConfig = DriveConfig()
+    trajectory: TrajectoryConfig = TrajectoryConfig()
+    cache: Path = field(default_factory=lambda: Path.home() / ".cache" / "nerfbot" / "navigate")
+    out: Path = Path("navigate_out")
+    device: str = "cpu"
+    progress: bool = True
+
+    @property
+    def body(self) -> RobotBody:
+        return RobotBody(radius=self.robot.radius, height=self.robot.height)
+
+
+# ------------------------------------------------------------------------------ data and field
+def scene_folder(cfg: NavTaskConfig, seed: int) -> Path:
+    return Path(cfg.cache) / f"{cfg.scene}-{seed}" / f"{cfg.capture_size}px-{cfg.capture_views}v"
+
+
+def ensure_capture(cfg: NavTaskConfig, seed: int) -> Path:
+    """The room's capture from inside (RGB, depth, segmentation, sensor depth), made if missing."""
+    out = scene_folder(cfg, seed) / "data"
+    if (out / "transforms.json").exists():
+        return out
+    name = f"{cfg.scene}:{seed}"
+    rig = default_rig(name, count=cfg.capture_views, width=cfg.capture_size,
+                      height=cfg.capture_size, seed=seed)
+    capture(name, rig, make_test_rig(rig, cfg.capture_test_views), out, progress=cfg.progress,
+            sensor=DepthSensorModel(seed=seed))
+    return out
+
+
+def ensure_trained(cfg: NavTaskConfig, seed: int) -> Path:
+    """The field trained ``train_steps`` steps on the capture (resumed if interrupted)."""
+    data = ensure_capture(cfg, seed)
+    opts = "".join(f"-{k}={v}" for k, v in sorted(cfg.train_options.items()))
+    run = scene_folder(cfg, seed) / f"{cfg.method}-{cfg.train_steps}steps{opts}"
+    done = run / "done.json"
+    if done.exists():
+        return run
+    trainer = Trainer(load_dataset(data), run, TrainConfig(
+        method=cfg.method, max_steps=cfg.train_steps, seed=seed, options=dict(cfg.train_options),
+        device=cfg.device, progress=cfg.progress))
+    if (run / CHECKPOINT).exists():
+        trainer.load()
+    write_json_atomic(done, trainer.train())
+    return run
+
+
+# ------------------------------------------------------------------------------ the world
+class World:
+    """The room with the base and a capture camera, statically lit as the captures are."""
+
+    def __init__(self, scene: str, cfg: NavTaskConfig):
+        spec = mujoco.MjSpec.from_file(str(resolve_scene(scene)))
+        spec.worldbody.add_camera(name=CAPTURE_CAMERA, pos=[0, 0, 0], quat=[1, 0, 0, 0])
+        add_robot(spec, cfg.robot)
+        self.model = spec.compile()
+        set_lighting(self.model)
+        self.data = mujoco.MjData(self.model)
+        mujoco.mj_forward(self.model, self.data)
+        self.ids = robot_ids(self.model)
+        self.floor = tuple(i for i in range(self.model.ngeom)
+                           if self.model.geom(i).name == "floor")
+        self.robot = cfg.robot
+        self.camera = CaptureCamera(self.model, self.data, cfg.capture_size, cfg.capture_size,
+                                    cfg.robot.camera_fovy)
+        k = self.camera.intrinsics
+        self.intrinsics = (k.fx, k.fy, k.cx, k.cy)
+
+    def reset(self, x: float, y: float, yaw: float) -> None:
+        mujoco.mj_resetData(self.model, self.data)
+        set_robot_pose(self.data, self.ids, x, y, yaw)
+        mujoco.mj_forward(self.model, self.data)
+
+    def camera_pose(self, pose) -> np.ndarray:
+        """(4, 4) c2w (OpenGL) of the robot's camera when the base is at (x, y, yaw)."""
+        x, y, yaw = (float(v) for v in pose)
+        pitch = np.radians(self.robot.camera_pitch)
+        forward = np.array([np.cos(yaw) * np.cos(pitch), np.sin(yaw) * np.cos(pitch),
+                            -np.sin(pitch)])
+        up = np.array([np.cos(yaw) * np.sin(pitch), np.sin(yaw) * np.sin(pitch), np.cos(pitch)])
+        c2w = np.eye(4)
+        c2w[:3, 0] = np.cross(forward, up)
+        c2w[:3, 1] = up
+        c2w[:3, 2] = -forward
+        c2w[:3, 3] = [x, y, self.robot.camera_height]
+        return c2w
+
+    def observe(self) -> np.ndarray:
+        """The robot camera's RGB image now (H, W, 3) uint8."""
+        return self.camera.render(self.camera_pose(robot_pose(self.data, self.ids))).rgb
+
+    def close(self) -> None:
+        self.camera.close()
+
+
+def base_pose_from_camera(c2w: np.ndarray) -> np.ndarray:
+    """(x, y, yaw) of the base whose camera has pose ``c2w`` (the camera's heading)."""
+    forward = -np.asarray(c2w)[:3, 2]
+    return np.array([c2w[0, 3], c2w[1, 3], np.arctan2(forward[1], forward[0])])
+
+
+# ------------------------------------------------------------------------------ maps
+def field_floor_map(model, world: World, cfg: NavTaskConfig) -> FloorMap:
+    """Floor map of the field's density on a grid over the room (floor to the base's top)."""
+    xmin, ymin, xmax, ymax = room_area(world.model)
+    bounds = np.array([[xmin, ymin, 0.0], [xmax, ymax, cfg.robot.height + cfg.map_cell]])
+    resolution = int(np.ceil(max(xmax - xmin, ymax - ymin) / cfg.map_cell))
+    volume = occupancy_volume(model, bounds, resolution, cfg.threshold)
+    return floor_map_from_volume(volume, cfg.body)
+
+
+def sensor_floor_map(data: Path, world: World, cfg: NavTaskConfig) -> FloorMap:
+    """Floor map of the depth sensor's training-view readings fused into a TSDF (open3d): the
+    surface points of the fused volume mark occupied cells."""
+    ds = load_dataset(data)
+    voxel = cfg.map_cell / 2
+    tsdf = o3d.pipelines.integration.ScalableTSDFVolume(
+        voxel_length=voxel, sdf_trunc=4 * voxel,
+        color_type=o3d.pipelines.integration.TSDFVolumeColorType.NoColor)
+    flip = np.diag([1.0, -1.0, -1.0, 1.0])           # OpenGL camera -> OpenCV camera
+    cam = ds.cameras()
+    for i in ds.indices("train"):
+        depth = ds.sensor_depths[i] if i < len(ds.sensor_depths) else None
+        if depth is None:
+            raise ValueError(f"{data}: view {i} has no sensor depth (capture with a sensor)")
+        h, w = depth.shape
+        intr = o3d.camera.PinholeCameraIntrinsic(w, h, float(cam.fx[i]), float(cam.fy[i]),
+                                                 float(cam.cx[i]) - 0.5, float(cam.cy[i]) - 0.5)
+        d = np.nan_to_num(depth, nan=0.0, posinf=0.0).astype(np.float32)
+        rgbd = o3d.geometry.RGBDImage.create_from_color_and_depth(
+            o3d.geometry.Image(np.zeros((h, w, 3), np.uint8)), o3d.geometry.Image(d),
+            depth_scale=1.0, depth_trunc=20.0, convert_rgb_to_intensity=False)
+        extrinsic = np.linalg.inv(cam.c2w[i].cpu().numpy().astype(float) @ flip)
+        tsdf.integrate(rgbd, intr, extrinsic)
+    points = np.asarray(tsdf.extract_point_cloud().points)
+    xmin, ymin, xmax, ymax = room_area(world.model)
+    bounds = np.array([[xmin, ymin, 0.0], [xmax, ymax, cfg.robot.height + cfg.map_cell]])
+    resolution = int(np.ceil(max(xmax - xmin, ymax - ymin) / cfg.map_cell))
+    from nerfbot.query.meshing import grid_points
+    shape, spacing = grid_points(bounds, resolution)
+    occupied = np.zeros(tuple(shape), bool)
+    idx = np.rint((points - bounds[0]) / spacing).astype(int)
+    ok = np.all((idx >= 0) & (idx < shape), axis=1)
+    occupied[tuple(idx[ok].T)] = True
+    return floor_map_from_volume(OccupancyVolume(occupied, bounds[0], spacing, 1.0), cfg.body)
+
+
+# ------------------------------------------------------------------------------ trials
+def draw_pairs(gt_map: FloorMap, cfg: NavTaskConfig, seed: int) -> list[tuple[np.ndarray, ...]]:
+    """``cfg.trials`` (start, goal) pairs of cells where the base stands on the true map with
+    room to spare (radius + 2 margins), at least ``min_distance`` apart, seeded."""
+    rng = np.random.default_rng(seed)
+    free = np.argwhere(gt_map.free_for(cfg.robot.radius + 2 * cfg.margin))
+    pairs = []
+    for _ in range(10000):
+        if len(pairs) == cfg.trials:
+            break
+        a, b = (gt_map.to_world(free[rng.integers(len(free))]) for _ in range(2))
+        if np.linalg.norm(a - b) >= cfg.min_distance:
+            yaw = float(rng.uniform(-np.pi, np.pi))
+            pairs.append((a, b, yaw))
+    return pairs
+
+
+def plan(model, fmap: FloorMap, cfg: NavTaskConfig, start, goal) -> tuple[np.ndarray, dict]:
+    """A* + shortcuts on ``fmap``; with a field, trajectory optimisation through its density."""
+    body = cfg.body
+    path = plan_grid_path(fmap, body, start, goal, margin=cfg.margin)
+    path = shortcut(path, fmap, body.radius + cfg.margin)
+    info = {}
+    if model is not None:
+        path, info = optimise_trajectory(model, path, body, fmap, cfg.trajectory,
+                                         margin=cfg.margin)
+    return path, info
+
+
+def _pose_source(model, world: World, cfg: NavTaskConfig, seconds: list):
+    if cfg.pose == "gt":
+        return None
+
+    def estimate(_model, _data, predicted):
+        image = world.observe()
+        guess = world.camera_pose(predicted)
+        if cfg.pose == "inerf":
+            est = inerf(model, image, world.intrinsics, guess, InerfConfig())
+        else:
+            est = localise_multistart(model, image, world.intrinsics, guess, MultiStartConfig())
+        seconds.append(est.seconds)
+        return base_pose_from_camera(est.c2w)
+
+    return estimate
+
+
+def trial_sheet(fmap: FloorMap, gt_map: FloorMap, planned: Optional[np.ndarray],
+                drive_log: Optional[DriveLog], start, goal, path: Path, scale: int = 4) -> None:
+    """Top-down PNG, x to the right and y up: true obstacles the map misses grey, obstacles on
+    both dark red, the map's phantom obstacles light red; planned path blue, driven path green
+    (the pose estimates steered by yellow), start green and goal magenta circles."""
+    nx, ny = gt_map.shape
+    img = np.full((nx, ny, 3), 255, np.uint8)
+    img[gt_map.blocked] = (150, 150, 150)
+    cells = gt_map.to_cell(fmap.to_world(np.argwhere(fmap.blocked)))
+    cells = cells[gt_map.inside(cells)]
+    both = gt_map.blocked[cells[:, 0], cells[:, 1]]
+    img[cells[both, 0], cells[both, 1]] = (120, 40, 40)
+    img[cells[~both, 0], cells[~both, 1]] = (240, 110, 110)
+    img = np.ascontiguousarray(img.transpose(1, 0, 2)[::-1])          # rows: y, top = max y
+    img = cv2.resize(img, (nx * scale, ny * scale), interpolation=cv2.INTER_NEAREST)
+
+    def px(points):
+        c = gt_map.to_cell(np.asarray(points)[:, :2])
+        return np.stack([c[:, 0] * scale + scale // 2,
+                         (ny - 1 - c[:, 1]) * scale + scale // 2], -1).astype(np.int32)
+
+    if planned is not None:
+        cv2.polylines(img, [px(planned)], False, (40, 90, 230), 2)
+    if drive_log is not None and len(drive_log.poses):
+        if len(drive_log.estimates):
+            cv2.polylines(img, [px(drive_log.estimates)], False, (230, 200, 40), 1)
+        cv2.polylines(img, [px(drive_log.poses)], False, (40, 170, 60), 2)
+    r = max(int(0.18 / gt_map.cell * scale), 2)
+    cv2.circle(img, tuple(int(v) for v in px([start])[0]), r, (40, 170, 60), 2)
+    cv2.circle(img, tuple(int(v) for v in px([goal])[0]), r, (230, 60, 200), 2)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+
+
+def run_experiment(cfg: NavTaskConfig) -> dict:
+    """Every scene and pair; returns the summary (also written to ``cfg.out``)."""
+    if cfg.map not in MAPS:
+        raise ValueError(f"--map must be one of {MAPS}, got {cfg.map!r}")
+    if cfg.pose not in POSES:
+        raise ValueError(f"--pose must be one of {POSES}, got {cfg.pose!r}")
+    out = Path(cfg.out)
+    records = []
+    for s in range(cfg.scenes):
+        seed = cfg.seed + s
+        name = f"{cfg.scene}:{seed}"
+        data = ensure_capture(cfg, seed) if cfg.map == "sensor" else None
+        model = None
+        if cfg.map == "nerf" or cfg.pose != "gt":
+            model, _ = load_model(ensure_trained(cfg, seed), cfg.device)
+        world = World(name, cfg)
+        try:
+            gt_map = true_floor_map(world.model, world.data, cfg.body, cfg.map_cell)
+            t0 = time.perf_counter()
+            if cfg.map == "nerf":
+                fmap = field_floor_map(model, world, cfg)
+            elif cfg.map == "sensor":
+                fmap = sensor_floor_map(data, world, cfg)
+            else:
+                fmap = gt_map
+            map_seconds = time.perf_counter() - t0
+            pairs = draw_pairs(gt_map, cfg, seed)
+            bar = tqdm(pairs, desc=f"scene {s + 1}/{cfg.scenes} ({name})", unit="trial",
+                       disable=not cfg.progress)
+            for k, (start, goal, yaw) in enumerate(bar):
+                rec = {"scene": name, "trial": k, "start": start.tolist(), "goal": goal.tolist(),
+                       "map": cfg.map, "pose": cfg.pose, "map_seconds": map_seconds}
+                ref, _ = plan(None, gt_map, cfg, start, goal)
+                rec["reference_length"] = path_length(ref)
+                t0 = time.perf_counter()
+                planned, drive_log = None, None
+                try:
+                    planned, info = plan(model if cfg.map == "nerf" else None, fmap, cfg,
+                                         start, goal)
+                    rec.update(info)
+                except PlanningError as err:
+                    rec.update(success=False, reason=f"planning: {err}")
+                rec["planning_seconds"] = time.perf_counter() - t0
+                if planned is not None:
+                    rec["path_length"] = path_length(planned)
+                    world.reset(start[0], start[1], yaw)
+                    loc_seconds: list[float] = []
+                    t0 = time.perf_counter()
+                    drive_log = drive(world.model, world.data, world.ids, planned, cfg.drive,
+                                      _pose_source(model, world, cfg, loc_seconds), world.floor)
+                    final = robot_pose(world.data, world.ids)
+                    error = float(np.linalg.norm(final[:2] - goal))
+                    rec.update(
+                        trial_seconds=time.perf_counter() - t0, sim_seconds=drive_log.seconds,
+                        contacts=drive_log.contacts, goal_error=error,
+                        localise_seconds=float(np.median(loc_seconds)) if loc_seconds else None,
+                        success=bool(error <= 0.1 and not drive_log.contacts),
+                        reason="" if error <= 0.1 and not drive_log.contacts else
+                        ("contact with " + ", ".join(sorted(set(drive_log.contacts)))
+                         if drive_log.contacts else f"stopped {error:.2f} m from the goal"))
+                trial_sheet(fmap, gt_map, planned, drive_log, start, goal,
+                            out / "trials" / f"{cfg.scene}-{seed}_{k:02d}.png")
+                records.append(rec)
+                bar.set_postfix(ok=sum(r["success"] for r in records), refresh=False)
+                write_json_atomic(out / "log.json", {"config": _config_dict(cfg),
+                                                     "trials": records})
+        finally:
+            world.close()
+    summary = summarize(records)
+    write_json_atomic(out / "summary.json", {"config": _config_dict(cfg), **summary})
+    return summary
+
+
+def summarize(records: list[dict]) -> dict:
+    """Success rate, path length against the true-geometry planner's, planning and trial
+    seconds (medians), contacts."""
+    n = len(records)
+    ok = [r for r in records if r["success"]]
+    ratios = [r["path_length"] / r["reference_length"] for r in records
+              if "path_length" in r and r["reference_length"] > 0]
+    med = (lambda v: float(np.median(v)) if v else None)
+    return {"trials": n, "success_rate": len(ok) / n if n else None,
+            "collisions": sum(1 for r in records if r.get("contacts")),
+            "planning_failures": sum(1 for r in records if r.get("reason", "").startswith("planning")),
+            "path_length_ratio_median": med(ratios),
+            "path_length_ratio_max": max(ratios) if ratios else None,
+            "planning_seconds_median": med([r["planning_seconds"] for r in records]),
+            "planning_seconds_max": max((r["planning_seconds"] for r in records), default=None),
+            "trial_seconds_median": med([r["trial_seconds"] for r in records
+                                         if "trial_seconds" in r]),
+            "localise_seconds_median": med([r["localise_seconds"] for r in records
+                                            if r.get("localise_seconds") is not None])}
+
+
+def _config_dict(cfg: NavTaskConfig) -> dict:
+    d = asdict(cfg)
+    d["cache"], d["out"] = str(cfg.cache), str(cfg.out)
+    return d
+
+
+def format_summary(summary: dict) -> str:
+    rows = [("trials", summary["trials"]), ("success rate", f"{summary['success_rate']:.0%}"),
+            ("with contacts", summary["collisions"]),
+            ("planning failures", summary["planning_failures"]),
+            ("path length / true-map planner (median, max)",
+             f"{summary['path_length_ratio_median']:.3f}, {summary['path_length_ratio_max']:.3f}"
+             if summary["path_length_ratio_median"] else "-"),
+            ("planning s (median, max)",
+             f"{summary['planning_seconds_median']:.2f}, {summary['planning_seconds_max']:.2f}"),
+            ("localisation s per estimate (median)",
+             f"{summary['localise_seconds_median']:.2f}"
+             if summary["localise_seconds_median"] else "-")]
+    return "\n".join(f"{k:<48} {v}" for k, v in rows)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m tasks.navigate", description=__doc__.split(
+        "\n\n")[0])
+    parser.add_argument("--scene", default="room", help="room scene family (default room)")
+    parser.add_argument("--scenes", type=int, default=3, help="room seeds, from --seed on")
+    parser.add_argument("--trials", type=int, default=10, help="start/goal pairs per room")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--map", choices=MAPS, default="nerf")
+    parser.add_argument("--pose", choices=POSES, default="gt")
+    parser.add_argument("--train-steps", type=int, default=NavTaskConfig.train_steps)
+    parser.add_argument("--capture-views", type=int, default=NavTaskConfig.capture_views)
+    parser.add_argument("--capture-size", type=int, default=NavTaskConfig.capture_size)
+    parser.add_argument("--threshold", type=float, default=None,
+                        help="obstacle density of a field map, 1/m")
+    parser.add_argument("--cache", type=Path, default=None, help="capture/run cache folder")
+    parser.add_argument("--out", type=Path, default=Path("navigate_out"))
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--json", action="store_true", help="print the summary as JSON")
+    parser.add_argument("--no-progress", action="store_true")
+    args = parser.parse_args(argv)
+    for name in ("scenes", "trials", "train_steps", "capture_views", "capture_size"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name.replace('_', '-')} must be at least 1")
+    cfg = NavTaskConfig(scene=args.scene, scenes=args.scenes, trials=args.trials, seed=args.seed,
+                        map=args.map, pose=args.pose, train_steps=args.train_steps,
+                        capture_views=args.capture_views, capture_size=args.capture_size,
+                        threshold=args.threshold, out=args.out, device=args.device,
+                        progress=not args.no_progress)
+    if args.cache is not None:
+        cfg = replace(cfg, cache=args.cache)
+    if args.out.exists() and any(args.out.iterdir()):
+        parser.error(f"--out {args.out} is not empty: choose a new folder")
+    try:
+        summary = run_experiment(cfg)
+    except (ValueError, FileNotFoundError, RuntimeError) as err:
+        parser.exit(2, f"{parser.prog}: error: {err}\n")
+    print(json.dumps(summary) if args.json else format_summary(summary))
+    return 0
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    raise SystemExit(main())

@@ -1,0 +1,224 @@
+"""Navigation pieces: density queries and NeRF-Nav's collision cost on a field of known
+analytic density, A* and its errors, floor maps of the true room, and the MuJoCo base."""
+
+from __future__ import annotations
+
+import math
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from nerfbot.query.density import collision_cost, density_at, occupancy_volume
+from sims.robot import (add_robot, command_velocity, robot_contacts, robot_ids, robot_pose,
+                        set_robot_pose)
+from sims.scene import resolve_scene
+from tasks.nav_execute import drive
+from tasks.nav_map import FloorMap, RobotBody, floor_map_from_volume, true_floor_map
+from tasks.nav_planner import (PlanningError, astar, optimise_trajectory, path_length,
+                               plan_grid_path, shortcut)
+
+BALL_CENTRE = (0.5, 0.0, 0.25)
+BALL_RADIUS = 0.2
+BALL_DENSITY = 100.0
+
+
+class BallField(nn.Module):
+    """Density BALL_DENSITY / m inside a ball, falling off smoothly over 5 cm, 0 elsewhere."""
+
+    def density(self, x, cond=None):
+        r = torch.linalg.vector_norm(x - torch.tensor(BALL_CENTRE, dtype=x.dtype), dim=-1)
+        sigma = BALL_DENSITY * torch.sigmoid((BALL_RADIUS - r) / 0.01)
+        return sigma, None
+
+
+class BallModel(nn.Module):
+    """The least a model offers density queries: bounds and a field (no occupancy grid)."""
+
+    def __init__(self):
+        super().__init__()
+        self.register_buffer("aabb", torch.tensor([[-1.0, -1.0, 0.0], [1.0, 1.0, 1.0]]))
+        self.field = BallField()
+
+
+def test_density_at_matches_the_field_and_keeps_gradients():
+    model = BallModel()
+    pts = torch.tensor([[0.5, 0.0, 0.25], [-0.5, 0.0, 0.25]], requires_grad=True)
+    sigma = density_at(model, pts, grad=True, chunk=1)
+    assert float(sigma[0]) == pytest.approx(BALL_DENSITY, rel=1e-6) and float(sigma[1]) < 1e-6
+    sigma.sum().backward()
+    assert torch.isfinite(pts.grad).all()
+    with pytest.raises(ValueError, match=r"\(N, 3\)"):
+        density_at(model, torch.zeros(4, 2))
+
+
+def test_collision_cost_is_zero_in_free_space_and_grows_inside_an_obstacle():
+    model = BallModel()
+    body = torch.as_tensor(RobotBody(radius=0.1, height=0.3).sample_points(), dtype=torch.float32)
+    eye = torch.eye(3).expand(5, 3, 3)
+
+    def cost_at(x):
+        pos = torch.stack([torch.linspace(x - 0.2, x + 0.2, 5), torch.full((5,), -0.6),
+                           torch.zeros(5)], -1) + torch.tensor([0.0, 0.6, 0.0])
+        return collision_cost(model, body, pos, eye, dt=0.1)
+
+    free_cost, free_hard = cost_at(-0.5)
+    assert float(free_cost) < 1e-8 and float(free_hard.max()) < 1e-3
+    grazing, _ = cost_at(0.15)
+    inside, hard = cost_at(0.5)
+    assert 0 < float(grazing) < float(inside)
+    assert float(hard.max()) == pytest.approx(BALL_DENSITY, rel=1e-3)
+    # faster through the same poses costs proportionally more (speed weighting)
+    pos = torch.tensor([[0.4, 0.0, 0.0], [0.5, 0.0, 0.0], [0.6, 0.0, 0.0]])
+    slow, _ = collision_cost(model, body, pos, torch.eye(3).expand(3, 3, 3), dt=1.0)
+    fast, _ = collision_cost(model, body, pos, torch.eye(3).expand(3, 3, 3), dt=0.5)
+    assert float(fast) == pytest.approx(2 * float(slow), rel=1e-5)
+
+
+def test_collision_cost_gradient_matches_finite_differences():
+    model = BallModel().double()
+    body = torch.tensor([[0.0, 0.0, 0.1], [0.1, 0.0, 0.2], [0.0, 0.1, 0.3]], dtype=torch.float64)
+    pos = torch.tensor([[0.2, 0.05, 0.0], [0.35, 0.0, 0.05], [0.5, -0.05, 0.0]],
+                       dtype=torch.float64, requires_grad=True)
+    rot_vec = torch.tensor([[0.0, 0.0, 0.1], [0.0, 0.0, 0.3], [0.05, 0.0, 0.5]],
+                           dtype=torch.float64, requires_grad=True)
+
+    def cost(p, w):
+        rot = torch.linalg.matrix_exp(torch.stack([
+            torch.stack([torch.zeros_like(w[:, 0]), -w[:, 2], w[:, 1]], -1),
+            torch.stack([w[:, 2], torch.zeros_like(w[:, 0]), -w[:, 0]], -1),
+            torch.stack([-w[:, 1], w[:, 0], torch.zeros_like(w[:, 0])], -1)], -2))
+        return collision_cost(model, body, p, rot, dt=0.1)[0]
+
+    assert float(cost(pos, rot_vec)) > 1.0        # the body is inside the ball's fall-off
+    assert torch.autograd.gradcheck(cost, (pos, rot_vec), eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+def test_occupancy_volume_and_its_floor_map_see_the_ball():
+    model = BallModel()
+    vol = occupancy_volume(model, [[-1, -1, 0], [1, 1, 1]], 40, threshold=BALL_DENSITY / 2)
+    pts = vol.points()[vol.occupied]
+    assert np.all(np.linalg.norm(pts - BALL_CENTRE, axis=1) <= BALL_RADIUS + 0.03)
+    assert vol.occupied[tuple(vol.index_of([BALL_CENTRE])[0])]
+    dist = vol.distance()
+    far = vol.index_of([[-0.5, 0.0, 0.25]])[0]
+    assert dist[tuple(far)] == pytest.approx(1.0 - BALL_RADIUS, abs=0.06)
+    fmap = floor_map_from_volume(vol, RobotBody(radius=0.1, height=0.6))
+    blocked = fmap.to_world(np.argwhere(fmap.blocked))
+    assert np.all(np.linalg.norm(blocked - BALL_CENTRE[:2], axis=1) <= BALL_RADIUS + 0.03)
+    # a body shorter than the ball's bottom (0.05 m) passes under it
+    low = floor_map_from_volume(vol, RobotBody(radius=0.1, height=0.04, floor_clearance=0.0))
+    assert not low.blocked.any()
+
+
+def test_astar_finds_the_known_shortest_path_around_a_wall():
+    free = np.ones((7, 7), bool)
+    free[3, 0:6] = False                      # a wall with a gap at j = 6
+    path = astar(free, (0, 0), (6, 0))
+    assert path[0] == (0, 0) and path[-1] == (6, 0)
+    assert all(free[c] for c in path)
+    assert (3, 6) in path
+    steps = [math.hypot(a[0] - b[0], a[1] - b[1]) for a, b in zip(path, path[1:])]
+    # through the gap without cutting the wall's corner: (0,0)-(2,6), (2,6)-(4,6), (4,6)-(6,0)
+    assert sum(steps) == pytest.approx(4 * math.sqrt(2) + 10, abs=1e-9)
+    free[3, 6] = False
+    assert astar(free, (0, 0), (6, 0)) is None
+
+
+def test_planner_refuses_a_start_inside_an_obstacle_and_offers_the_nearest_free_point():
+    blocked = np.zeros((40, 40), bool)
+    blocked[15:25, 15:25] = True
+    fmap = FloorMap(blocked, (0.0, 0.0), 0.05)
+    body = RobotBody(radius=0.1)
+    with pytest.raises(PlanningError, match=r"start \(1\.00, 1\.00\) m is inside an obstacle.*"
+                                            r"nearest point where it can is"):
+        plan_grid_path(fmap, body, (1.0, 1.0), (0.2, 0.2))
+    with pytest.raises(PlanningError, match="goal .* closer than the robot's radius"):
+        plan_grid_path(fmap, body, (0.2, 0.2), (0.7, 1.0))
+    with pytest.raises(PlanningError, match="outside the map"):
+        plan_grid_path(fmap, body, (0.2, 0.2), (5.0, 1.0))
+    path = plan_grid_path(fmap, body, (0.2, 0.2), (1.8, 1.8))
+    clearance = fmap.clearance()
+    cells = fmap.to_cell(path)
+    assert np.all(clearance[cells[:, 0], cells[:, 1]] > body.radius)
+    short = shortcut(path, fmap, body.radius)
+    assert path_length(short) <= path_length(path) + 1e-9 and len(short) < len(path)
+
+
+def test_trajectory_optimisation_moves_a_path_off_a_faint_obstacle():
+    """A straight path grazing a low-density ball (a field's fog, below the map's obstacle
+    threshold) is pushed away from it, start and goal fixed."""
+    model = BallModel()
+    fmap = FloorMap(np.zeros((60, 40), bool), (-1.0, -1.0), 0.05)
+    body = RobotBody(radius=0.1, height=0.4)
+    start, goal = np.array([-0.5, 0.25]), np.array([1.4, 0.25])
+    path, info = optimise_trajectory(model, np.stack([start, goal]), body, fmap)
+    assert info["refined"] and info["collision_cost_after"] < 0.5 * info["collision_cost_before"]
+    assert np.allclose(path[0], start) and np.allclose(path[-1], goal)
+    assert np.max(path[:, 1]) > 0.27         # bent away from the ball at y = 0
+
+
+@pytest.fixture(scope="module")
+def room_with_robot():
+    spec = mujoco.MjSpec.from_file(str(resolve_scene("room:0")))
+    add_robot(spec)
+    model = spec.compile()
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    return model, data
+
+
+def test_true_floor_map_blocks_furniture_and_walls(room_with_robot):
+    model, data = room_with_robot
+    body = RobotBody()
+    fmap = true_floor_map(model, data, body)
+    assert fmap.blocked[0].all() and fmap.blocked[-1].all()         # walls
+    assert fmap.blocked[:, 0].all() and fmap.blocked[:, -1].all()
+    centre = model.geom("crate_0")
+    cell = fmap.to_cell(data.geom_xpos[centre.id][:2])
+    assert fmap.blocked[tuple(cell)]
+    free = fmap.free_for(body.radius)
+    assert 0.3 < free.mean() < 0.9
+
+
+def test_a_scripted_drive_into_a_wall_registers_contacts(room_with_robot):
+    model, data = room_with_robot
+    ids = robot_ids(model)
+    floor = (model.geom("floor").id,)
+    mujoco.mj_resetData(model, data)
+    w = float(model.numeric("nerfbot_room_size").data[0])
+    fmap = true_floor_map(model, data, RobotBody())
+    free = np.argwhere(fmap.free_for(0.2))
+    start = fmap.to_world(free[np.argmax(fmap.to_world(free)[:, 0])])  # the free cell nearest the east wall
+    set_robot_pose(data, ids, start[0], start[1], 0.0)
+    mujoco.mj_forward(model, data)
+    assert robot_contacts(model, data, ids, floor) == []
+    command_velocity(data, ids, 0.5, 0.0, 0.0)
+    touched = set()
+    for _ in range(1500):
+        mujoco.mj_step(model, data)
+        touched |= set(robot_contacts(model, data, ids, floor))
+    names = {model.geom(g).name for g in touched}
+    assert "wall_east" in names
+    x = robot_pose(data, ids)[0]
+    assert x <= w / 2 - 0.18 + 0.01          # the wall stopped it
+
+
+def test_the_base_follows_a_planned_path_without_contacts(room_with_robot):
+    model, data = room_with_robot
+    ids = robot_ids(model)
+    body = RobotBody()
+    fmap = true_floor_map(model, data, body)
+    free = np.argwhere(fmap.free_for(body.radius + 0.03))
+    rng = np.random.default_rng(3)
+    for _ in range(2):
+        a, b = (fmap.to_world(free[rng.integers(len(free))]) for _ in range(2))
+        path = shortcut(plan_grid_path(fmap, body, a, b, margin=0.03), fmap, body.radius + 0.03)
+        mujoco.mj_resetData(model, data)
+        set_robot_pose(data, ids, a[0], a[1], 0.0)
+        mujoco.mj_forward(model, data)
+        log = drive(model, data, ids, path, floor_geoms=(model.geom("floor").id,))
+        assert log.reached and not log.contacts, (a, b, log.contacts)
+        assert np.linalg.norm(robot_pose(data, ids)[:2] - b) < 0.1
