@@ -2,15 +2,17 @@
 limits.
 
 usage: python docs/benchmarks/profile_ngp.py DATA [--warmup-steps 300] [--steps 100]
-                                             [--samples 32768] [--json OUT.json]
+                                             [--samples 32768] [--option KEY=VALUE]
+                                             [--json OUT.json] [--out RUN]
 
 Trains `ngp` with its defaults on DATA for ``--warmup-steps`` (untimed: the occupancy grid has
 pruned and the field has structure, as in the middle of a budget), then times ``--steps`` more,
 phase by phase, at ``--samples`` samples per batch, then renders every test view (the phases of
 rendering timed the same way, per image, the evaluation's own work in "other"). The phases of a
-step are the trainer's own calls: grid upkeep (`before_step`), drawing the batch, marching, the
-density-only pass that finds where rays saturate, the field's density and colour forward
-passes, compositing and losses, backward, and the optimiser. Timers synchronise nothing (CPU
+step are the trainer's own calls: grid upkeep (`before_step`, with its density queries),
+drawing the batch, marching, the density-only pass that finds where rays saturate (in steps
+that march in rounds), the field's density and colour forward passes, compositing and
+losses, backward, and the optimiser. Timers synchronise nothing (CPU
 only) and add one `perf_counter` pair per call.
 
 The bound: a step that trains on M samples must at least (a) run the MLPs' FLOPs forward and
@@ -32,6 +34,7 @@ from pathlib import Path
 
 import torch
 
+from nerfbot.app.cli import parse_option
 from nerfbot.data import load_dataset
 from nerfbot.eval.evaluation import evaluate
 from nerfbot.models import occupancy as occupancy_module
@@ -46,20 +49,28 @@ class PhaseTimer:
     def __init__(self):
         self.seconds = defaultdict(float)
         self._children = []
+        self._absorbing = 0
 
-    def wrap(self, obj, attr: str, name: str, split_grad: bool = False) -> None:
+    def wrap(self, obj, attr: str, name: str, split_grad: bool = False,
+             absorb: bool = False) -> None:
+        """Time calls of ``obj.attr`` as phase ``name``; with ``absorb`` the timed calls made
+        inside it count as part of it."""
         fn = getattr(obj, attr)
 
         def timed(*args, **kwargs):
+            if self._absorbing:
+                return fn(*args, **kwargs)
             key = name
             if split_grad:
                 key = f"{name} (train)" if torch.is_grad_enabled() else f"{name} (no grad)"
+            self._absorbing += absorb
             self._children.append(0.0)
             t0 = time.perf_counter()
             try:
                 return fn(*args, **kwargs)
             finally:
                 elapsed = time.perf_counter() - t0
+                self._absorbing -= absorb
                 nested = self._children.pop()
                 self.seconds[key] += elapsed - nested
                 if self._children:
@@ -115,20 +126,22 @@ def main() -> None:
     p.add_argument("--warmup-steps", type=int, default=300)
     p.add_argument("--steps", type=int, default=100)
     p.add_argument("--samples", type=int, default=1 << 15)
+    p.add_argument("--option", action="append", default=[], type=parse_option,
+                   metavar="KEY=VALUE", help="ngp option (repeatable)")
     p.add_argument("--json", type=Path, default=None)
     p.add_argument("--out", type=Path, default=Path("profile_run"),
                    help="run folder of the warm-up training (new or empty)")
     args = p.parse_args()
 
     ds = load_dataset(args.data)
-    options = {"samples_per_batch": args.samples}
+    options = {"samples_per_batch": args.samples, **dict(args.option)}
     trainer = Trainer(ds, args.out, TrainConfig(method="ngp", max_steps=args.warmup_steps,
                                                 seed=0, progress=False, options=options))
     trainer.train()
     model, bank, gen = trainer.model, trainer.bank, trainer.generator
 
     timer = PhaseTimer()
-    timer.wrap(model, "before_step", "grid upkeep")
+    timer.wrap(model, "before_step", "grid upkeep", absorb=True)
     timer.wrap(bank, "sample", "draw batch")
     timer.wrap(model, "_march", "march")
     timer.wrap(model.field, "density", "density", split_grad=True)
