@@ -14,9 +14,10 @@ For each of ``--scenes`` room seeds (``--seed`` on):
    - ``gt``: the scene's true geometry;
 
 3. ``--trials`` start/goal pairs are drawn where the base can stand on the true map, at least
-   ``--min-distance`` apart; for each, A* on the map (inflated by the base's radius and a
-   margin) gives the warm start, shortcuts shorten it and, on a field map, trajectory
-   optimisation through the field's density (NeRF-Nav's collision cost) refines it;
+   1.5 m apart (``NavTaskConfig.min_distance``); for each, A* on the map (inflated by the
+   base's radius and a margin) gives the warm start, shortcuts shorten it and, on a field
+   map, trajectory optimisation through the field's density (NeRF-Nav's collision cost)
+   refines it;
 4. the base drives the path in physics, steering by its true pose (``--pose gt``) or by poses
    estimated from its own camera every few control steps (``--pose inerf`` or ``multistart``,
    :mod:`nerfbot.query.localise`). Success: within 10 cm of the goal without any contact.

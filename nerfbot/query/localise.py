@@ -4,11 +4,12 @@
   batch of pixels, over a pose update in se(3) applied in the camera frame through the
   exponential map, ``c2w = c2w_0 @ exp(xi)``. Pixels are drawn from an interest region
   (opencv keypoints, dilated), where the image gradient tells the pose apart. Its basin is
-  narrow: a start more than about a tenth of the scene's depth off converges elsewhere.
-- :func:`localise_multistart`: the wider estimator. Many perturbed starts descend together (one
-  batched render per iteration) for a short coarse phase; the start with the lowest error on
-  a fixed pixel set is refined by :func:`inerf`. Its cost is ``starts`` times a coarse
-  iteration plus one iNeRF run.
+  narrow (the iNeRF paper's finding).
+- :func:`localise_multistart`: meant to widen the basin. Many perturbed starts descend
+  together (one batched render per iteration) for a short coarse phase; the start with the
+  lowest error on a fixed pixel set is refined by :func:`inerf`. Its cost is ``starts`` times a
+  coarse iteration plus one iNeRF run. Not yet validated: on a tiny test capture it drifted
+  along the view axis (BENCHMARKS.md, open points).
 
 Both need a model that renders with gradients w.r.t. its rays
 (:meth:`~nerfbot.models.base.Model.render_rays_differentiable`).
@@ -107,8 +108,8 @@ class InerfConfig:
 
 @dataclass
 class PoseEstimate:
-    """The estimated camera-to-world pose (4, 4), the final photometric MSE on the evaluation
-    pixels, and the seconds it took."""
+    """The estimated camera-to-world pose (4, 4), the final photometric MSE on a fixed set of
+    pixels, the seconds it took and the mean batch MSE at every iteration."""
 
     c2w: np.ndarray
     loss: float
