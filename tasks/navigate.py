@@ -196,11 +196,20 @@ def base_pose_from_camera(c2w: np.ndarray) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------ maps
+def map_grid(world: World, cfg: NavTaskConfig) -> tuple[np.ndarray, int]:
+    """Bounds (2, 3) of the 3D grid a floor map is made from, the room from the floor to just
+    above the base, each edge a whole number of ``map_cell`` (so the grid's cells are exactly
+    ``map_cell`` on every axis), and its resolution along the longest edge."""
+    xmin, ymin, xmax, ymax = room_area(world.model)
+    counts = np.ceil(np.array([xmax - xmin, ymax - ymin, cfg.robot.height + cfg.map_cell])
+                     / cfg.map_cell - 1e-9)
+    lo = np.array([xmin, ymin, 0.0])
+    return np.stack([lo, lo + counts * cfg.map_cell]), int(counts.max())
+
+
 def field_floor_map(model, world: World, cfg: NavTaskConfig) -> FloorMap:
     """Floor map of the field's density on a grid over the room (floor to the base's top)."""
-    xmin, ymin, xmax, ymax = room_area(world.model)
-    bounds = np.array([[xmin, ymin, 0.0], [xmax, ymax, cfg.robot.height + cfg.map_cell]])
-    resolution = int(np.ceil(max(xmax - xmin, ymax - ymin) / cfg.map_cell))
+    bounds, resolution = map_grid(world, cfg)
     volume = occupancy_volume(model, bounds, resolution, cfg.threshold)
     return floor_map_from_volume(volume, cfg.body)
 
@@ -229,9 +238,7 @@ def sensor_floor_map(data: Path, world: World, cfg: NavTaskConfig) -> FloorMap:
         extrinsic = np.linalg.inv(cam.c2w[i].cpu().numpy().astype(float) @ flip)
         tsdf.integrate(rgbd, intr, extrinsic)
     points = np.asarray(tsdf.extract_point_cloud().points)
-    xmin, ymin, xmax, ymax = room_area(world.model)
-    bounds = np.array([[xmin, ymin, 0.0], [xmax, ymax, cfg.robot.height + cfg.map_cell]])
-    resolution = int(np.ceil(max(xmax - xmin, ymax - ymin) / cfg.map_cell))
+    bounds, resolution = map_grid(world, cfg)
     shape, spacing = grid_points(bounds, resolution)
     occupied = np.zeros(tuple(shape), bool)
     idx = np.rint((points - bounds[0]) / spacing).astype(int)
