@@ -45,9 +45,8 @@ from tqdm import tqdm
 import sims  # noqa: F401  (selects the GL backend before mujoco is imported)
 from nerfbot.data import load_dataset
 from nerfbot.data.writers import write_json_atomic
-from nerfbot.query.density import OccupancyVolume, occupancy_volume
+from nerfbot.query.density import OccupancyVolume, grid_points, occupancy_volume
 from nerfbot.query.localise import InerfConfig, MultiStartConfig, inerf, localise_multistart
-from nerfbot.query.meshing import grid_points
 from nerfbot.train.checkpoints import CHECKPOINT
 from nerfbot.train.runs import load_model
 from nerfbot.train.trainer import TrainConfig, Trainer

@@ -9,47 +9,18 @@ dependency). Visibility tests and point-to-surface distances use open3d's ``Rayc
 
 from __future__ import annotations
 
-import math
 from typing import Optional
 
 import numpy as np
 import open3d as o3d
-import torch
 import trimesh
+
+from nerfbot.query.density import default_density_threshold, density_grid
 
 try:  # optional: open3d's isosurfaces otherwise
     from skimage.measure import marching_cubes as skimage_marching_cubes
 except ImportError:
     skimage_marching_cubes = None
-
-#: Marching steps along the cube diagonal that define the default density threshold (the
-#: default ``render_steps`` of the occupancy marcher).
-REFERENCE_STEPS = 256
-#: Opacity of one reference step at the default threshold.
-REFERENCE_OPACITY = 0.5
-
-
-def default_density_threshold(aabb, steps: int = REFERENCE_STEPS,
-                              opacity: float = REFERENCE_OPACITY) -> float:
-    """Density (1/m) at which one marching step of the default occupancy marcher, the diagonal
-    of the cube enclosing ``aabb`` (2, 3) divided by ``steps``, is ``opacity`` opaque:
-    ``-ln(1 - opacity) / step``. About 80 /m for the tabletop (step 8.7 mm). The same for every
-    method, so meshes of different methods are cut at the same density."""
-    aabb = np.asarray(aabb, float)
-    step = math.sqrt(3.0) * float((aabb[1] - aabb[0]).max()) / steps
-    return -math.log(1.0 - opacity) / step
-
-
-def grid_points(bounds, resolution: int) -> tuple[np.ndarray, np.ndarray]:
-    """Corners of a near-isotropic grid spanning ``bounds`` (2, 3) exactly, with ``resolution``
-    cells along the longest axis. Returns (shape (3,) points per axis, spacing (3,) metres)."""
-    lo, hi = np.asarray(bounds, float)
-    extent = hi - lo
-    if resolution < 2 or not np.all(extent > 0):
-        raise ValueError(f"need resolution >= 2 and non-empty bounds, got {resolution}, {bounds}")
-    cell = extent.max() / resolution
-    shape = np.maximum(np.round(extent / cell).astype(int), 1) + 1
-    return shape, extent / (shape - 1)
 
 
 def marching_cubes(volume: np.ndarray, level: float, backend: str = "auto"
@@ -77,49 +48,6 @@ def marching_cubes(volume: np.ndarray, level: float, backend: str = "auto"
         verts = mesh.vertex.positions.numpy().astype(float)[:, ::-1]  # (x, y, z) = (k, j, i)
         return np.ascontiguousarray(verts), mesh.triangle.indices.numpy().astype(np.int64)
     raise ValueError(f"unknown marching-cubes backend {backend!r} (auto, skimage, open3d)")
-
-
-def _occupancy_mask(model, x: torch.Tensor) -> Optional[torch.Tensor]:
-    """(N,) bool: the model's occupancy grid (if it has one) lets the renderer sample there."""
-    grid = getattr(model, "grid", None)
-    occupied = getattr(grid, "occupied", None)
-    if occupied is None:
-        return None
-    g = occupied.shape[0]
-    idx = ((grid.lookup_points(x) - grid.cube_min) / grid.cell_size).floor().long()
-    idx = idx.clamp(0, g - 1)
-    return occupied[idx[:, 0], idx[:, 1], idx[:, 2]].bool()
-
-
-@torch.no_grad()
-def density_grid(model, bounds, resolution: int, chunk: int = 1 << 16,
-                 respect_occupancy: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """Density (1/m) of ``model.field`` at the corners of :func:`grid_points` over ``bounds``.
-
-    With ``respect_occupancy``, density in cells the model's occupancy grid marks empty is 0
-    (the renderer never samples there, so it is not part of the rendered scene).
-    Returns (volume (X, Y, Z) float32, spacing (3,) metres).
-    """
-    shape, spacing = grid_points(bounds, resolution)
-    lo = np.asarray(bounds, float)[0]
-    axes = [lo[a] + spacing[a] * np.arange(shape[a]) for a in range(3)]
-    pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    device = model.aabb.device
-    was_training = model.training
-    model.eval()
-    out = np.empty(len(pts), np.float32)
-    try:
-        for i in range(0, len(pts), chunk):
-            x = torch.as_tensor(pts[i:i + chunk], dtype=torch.float32, device=device)
-            sigma = model.field.density(x)[0].float()
-            if respect_occupancy:
-                occ = _occupancy_mask(model, x)
-                if occ is not None:
-                    sigma = torch.where(occ, sigma, torch.zeros_like(sigma))
-            out[i:i + len(x)] = sigma.cpu().numpy()
-    finally:
-        model.train(was_training)
-    return out.reshape(tuple(shape)), spacing
 
 
 def field_mesh(model, resolution: int = 128, threshold: Optional[float] = None, bounds=None,
