@@ -47,9 +47,10 @@ class OccupancyModelConfig:
     """With ``train_early_termination``: while more than this fraction of a full march's
     samples lie before their ray saturates (a field not yet opaque), training skips the
     density-only pass and trains every marched sample; the choice is re-made after each step
-    from that step's samples. In the step profile of BENCHMARKS.md (section 7) a sample costs
-    about 0.85 us in the density-only pass and 2.0 us trained, so the pass pays for itself only
-    when it drops over 30 % of the samples. 1: always march in rounds."""
+    from that step's samples. In the step profiles of BENCHMARKS.md (section 7) a sample costs
+    about 0.7 us in the density-only pass and 2.5 us trained, so the pass pays for itself only
+    when it drops over about a fifth of the samples; 0.7 leans towards the rounds and was
+    measured against always marching in rounds (1)."""
     samples_per_batch: int = 1 << 17
     """Target number of samples per training batch; the ray count adapts to it."""
     shade_min_weight: float = 1e-4
