@@ -99,6 +99,35 @@ class FloorMap:
         return np.all((ij >= 0) & (ij < np.asarray(self.shape)), axis=-1)
 
 
+def resample_onto(fmap: FloorMap, reference: FloorMap) -> np.ndarray:
+    """``fmap``'s blocked cells read at ``reference``'s cell centres, (X, Y) bool of the
+    reference's shape; cells outside ``fmap`` count as blocked."""
+    ij = np.argwhere(np.ones(reference.shape, bool))
+    cells = fmap.to_cell(reference.to_world(ij))
+    inside = fmap.inside(cells)
+    out = np.ones(reference.shape, bool)
+    out[ij[inside, 0], ij[inside, 1]] = fmap.blocked[cells[inside, 0], cells[inside, 1]]
+    return out
+
+
+def map_agreement(fmap: FloorMap, truth: FloorMap, radius: float) -> dict:
+    """How a map compares with the true one, on the true map's cells:
+
+    - ``iou``: intersection over union of the blocked cells;
+    - ``phantom``: share of the truly free cells the map blocks;
+    - ``missed``: share of the truly blocked cells the map leaves free;
+    - ``standable_kept``: share of the cells where a body of ``radius`` (metres) truly stands
+      that the map also lets it stand on (what planning can use);
+    - ``standable_wrong``: share of the cells the map lets it stand on where it truly cannot
+      (what drives it into things)."""
+    b, g = resample_onto(fmap, truth), truth.blocked
+    fm = FloorMap(b, truth.origin, truth.cell).free_for(radius)
+    ft = truth.free_for(radius)
+    share = (lambda a, n: float(a.sum() / n.sum()) if n.any() else 0.0)
+    return {"iou": share(b & g, b | g), "phantom": share(b & ~g, ~g), "missed": share(~b & g, g),
+            "standable_kept": share(fm & ft, ft), "standable_wrong": share(fm & ~ft, fm)}
+
+
 def floor_map_from_volume(volume: OccupancyVolume, body: RobotBody,
                           floor_z: float = 0.0) -> FloorMap:
     """Project a 3D obstacle grid onto the floor: a column is blocked when any occupied grid

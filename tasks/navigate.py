@@ -43,6 +43,7 @@ import open3d as o3d
 from tqdm import tqdm
 
 import sims  # noqa: F401  (selects the GL backend before mujoco is imported)
+from nerfbot.app.cli import parse_option
 from nerfbot.data import load_dataset
 from nerfbot.data.writers import write_json_atomic
 from nerfbot.query.density import OccupancyVolume, grid_points, occupancy_volume
@@ -57,8 +58,8 @@ from sims.robot import (RobotConfig, add_robot, robot_ids, robot_pose, set_robot
 from sims.scene import CAPTURE_CAMERA, resolve_scene
 from sims.sensor import DepthSensorModel
 from tasks.nav_execute import DriveConfig, DriveLog, drive
-from tasks.nav_map import (FloorMap, RobotBody, floor_map_from_volume, room_area,
-                           true_floor_map)
+from tasks.nav_map import (FloorMap, RobotBody, floor_map_from_volume, map_agreement,
+                           room_area, true_floor_map)
 from tasks.nav_planner import (PlanningError, TrajectoryConfig, optimise_trajectory,
                                path_length, plan_grid_path, shortcut)
 
@@ -84,11 +85,18 @@ class NavTaskConfig:
     capture_size: int = 128
     train_steps: int = 2000
     method: str = "ngp"
-    train_options: dict = field(default_factory=dict)
+    train_options: dict = field(default_factory=lambda: {"near_gradient_distance": 1.0})
+    """Field options: a room's cameras stand inside it, where damping the gradients of the
+    samples near each camera (``near_gradient_distance``) keeps floaters out of the map
+    (BENCHMARKS.md, section 9)."""
     map_cell: float = 0.05
     threshold: Optional[float] = None
     """Obstacle density threshold of a field map, 1/m (None: the default of
     :func:`nerfbot.query.density.occupancy_volume`)."""
+    map_floor_clearance: float = 0.1
+    """A field map ignores density this close to the floor (metres; the base's own clearance,
+    :attr:`tasks.nav_map.RobotBody.floor_clearance`, if higher): a field's floor is a few
+    centimetres thick, and its fuzz would block open floor (BENCHMARKS.md, section 9)."""
     margin: float = 0.03
     """Planning keeps the base this much farther from obstacles than its radius."""
     min_distance: float = 1.5
@@ -210,7 +218,9 @@ def field_floor_map(model, world: World, cfg: NavTaskConfig) -> FloorMap:
     """Floor map of the field's density on a grid over the room (floor to the base's top)."""
     bounds, resolution = map_grid(world, cfg)
     volume = occupancy_volume(model, bounds, resolution, cfg.threshold)
-    return floor_map_from_volume(volume, cfg.body)
+    body = replace(cfg.body, floor_clearance=max(cfg.body.floor_clearance,
+                                                 cfg.map_floor_clearance))
+    return floor_map_from_volume(volume, body)
 
 
 def sensor_floor_map(data: Path, world: World, cfg: NavTaskConfig) -> FloorMap:
@@ -320,8 +330,10 @@ def trial_sheet(fmap: FloorMap, gt_map: FloorMap, planned: Optional[np.ndarray],
             cv2.polylines(img, [px(drive_log.estimates)], False, (230, 200, 40), 1)
         cv2.polylines(img, [px(drive_log.poses)], False, (40, 170, 60), 2)
     r = max(int(0.18 / gt_map.cell * scale), 2)
-    cv2.circle(img, tuple(int(v) for v in px([start])[0]), r, (40, 170, 60), 2)
-    cv2.circle(img, tuple(int(v) for v in px([goal])[0]), r, (230, 60, 200), 2)
+    if start is not None:
+        cv2.circle(img, tuple(int(v) for v in px([start])[0]), r, (40, 170, 60), 2)
+    if goal is not None:
+        cv2.circle(img, tuple(int(v) for v in px([goal])[0]), r, (230, 60, 200), 2)
     path.parent.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
 
@@ -333,7 +345,7 @@ def run_experiment(cfg: NavTaskConfig) -> dict:
     if cfg.pose not in POSES:
         raise ValueError(f"--pose must be one of {POSES}, got {cfg.pose!r}")
     out = Path(cfg.out)
-    records = []
+    records, maps = [], []
     for s in range(cfg.scenes):
         seed = cfg.seed + s
         name = f"{cfg.scene}:{seed}"
@@ -352,6 +364,13 @@ def run_experiment(cfg: NavTaskConfig) -> dict:
             else:
                 fmap = gt_map
             map_seconds = time.perf_counter() - t0
+            agreement = map_agreement(fmap, gt_map, cfg.robot.radius + cfg.margin)
+            maps.append({"scene": name, "map_seconds": map_seconds, **agreement})
+            log.info("%s map of %s: IoU %.3f with the true map, phantom %.3f, missed %.3f, "
+                     "standable kept %.3f, wrong %.3f", cfg.map, name, agreement["iou"],
+                     agreement["phantom"], agreement["missed"], agreement["standable_kept"],
+                     agreement["standable_wrong"])
+            trial_sheet(fmap, gt_map, None, None, None, None, out / f"map_{cfg.scene}-{seed}.png")
             pairs = draw_pairs(gt_map, cfg, seed)
             bar = tqdm(pairs, desc=f"scene {s + 1}/{cfg.scenes} ({name})", unit="trial",
                        disable=not cfg.progress)
@@ -391,10 +410,10 @@ def run_experiment(cfg: NavTaskConfig) -> dict:
                 records.append(rec)
                 bar.set_postfix(ok=sum(r["success"] for r in records), refresh=False)
                 write_json_atomic(out / "log.json", {"config": _config_dict(cfg),
-                                                     "trials": records})
+                                                     "maps": maps, "trials": records})
         finally:
             world.close()
-    summary = summarize(records)
+    summary = {**summarize(records), "maps": maps}
     write_json_atomic(out / "summary.json", {"config": _config_dict(cfg), **summary})
     return summary
 
@@ -427,18 +446,27 @@ def _config_dict(cfg: NavTaskConfig) -> dict:
 
 
 def format_summary(summary: dict) -> str:
-    rows = [("trials", summary["trials"]), ("success rate", f"{summary['success_rate']:.0%}"),
+    fmt = (lambda v, f: "-" if v is None else format(v, f))
+    lines = [f"{'map of':<12} {'IoU':>6} {'phantom':>8} {'missed':>7} {'stand kept':>11} "
+             f"{'stand wrong':>12} {'s':>6}"]
+    for m in summary["maps"]:
+        lines.append(f"{m['scene']:<12} {m['iou']:>6.3f} {m['phantom']:>8.3f} {m['missed']:>7.3f} "
+                     f"{m['standable_kept']:>11.3f} {m['standable_wrong']:>12.3f} "
+                     f"{m['map_seconds']:>6.1f}")
+    if not summary["trials"]:
+        return "\n".join(lines)
+    rows = [("trials", summary["trials"]), ("success rate", fmt(summary["success_rate"], ".0%")),
             ("with contacts", summary["collisions"]),
             ("planning failures", summary["planning_failures"]),
             ("path length / true-map planner (median, max)",
              f"{summary['path_length_ratio_median']:.3f}, {summary['path_length_ratio_max']:.3f}"
              if summary["path_length_ratio_median"] else "-"),
             ("planning s (median, max)",
-             f"{summary['planning_seconds_median']:.2f}, {summary['planning_seconds_max']:.2f}"),
+             f"{fmt(summary['planning_seconds_median'], '.2f')}, "
+             f"{fmt(summary['planning_seconds_max'], '.2f')}"),
             ("localisation s per estimate (median)",
-             f"{summary['localise_seconds_median']:.2f}"
-             if summary["localise_seconds_median"] else "-")]
-    return "\n".join(f"{k:<48} {v}" for k, v in rows)
+             fmt(summary["localise_seconds_median"], ".2f"))]
+    return "\n".join(lines + [""] + [f"{k:<48} {v}" for k, v in rows])
 
 
 def main(argv=None) -> int:
@@ -446,28 +474,40 @@ def main(argv=None) -> int:
         "\n\n")[0])
     parser.add_argument("--scene", default="room", help="room scene family (default room)")
     parser.add_argument("--scenes", type=int, default=3, help="room seeds, from --seed on")
-    parser.add_argument("--trials", type=int, default=10, help="start/goal pairs per room")
+    parser.add_argument("--trials", type=int, default=10,
+                        help="start/goal pairs per room (0: measure the maps only)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--map", choices=MAPS, default="nerf")
     parser.add_argument("--pose", choices=POSES, default="gt")
     parser.add_argument("--train-steps", type=int, default=NavTaskConfig.train_steps)
     parser.add_argument("--capture-views", type=int, default=NavTaskConfig.capture_views)
     parser.add_argument("--capture-size", type=int, default=NavTaskConfig.capture_size)
+    parser.add_argument("--option", action="append", default=[], type=parse_option,
+                        metavar="KEY=VALUE",
+                        help="field option of the training runs (repeatable; default "
+                             + ", ".join(f"{k}={v}" for k, v in
+                                         NavTaskConfig().train_options.items()) + ")")
     parser.add_argument("--threshold", type=float, default=None,
                         help="obstacle density of a field map, 1/m")
+    parser.add_argument("--floor-clearance", type=float, default=NavTaskConfig.map_floor_clearance,
+                        help="a field map ignores density this close to the floor, metres")
     parser.add_argument("--cache", type=Path, default=None, help="capture/run cache folder")
     parser.add_argument("--out", type=Path, default=Path("navigate_out"))
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
-    for name in ("scenes", "trials", "train_steps", "capture_views", "capture_size"):
+    if args.trials < 0:
+        parser.error("--trials must be at least 0 (0: measure the maps only)")
+    for name in ("scenes", "train_steps", "capture_views", "capture_size"):
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be at least 1")
     cfg = NavTaskConfig(scene=args.scene, scenes=args.scenes, trials=args.trials, seed=args.seed,
                         map=args.map, pose=args.pose, train_steps=args.train_steps,
                         capture_views=args.capture_views, capture_size=args.capture_size,
-                        threshold=args.threshold, out=args.out, device=args.device,
+                        threshold=args.threshold, map_floor_clearance=args.floor_clearance,
+                        out=args.out, device=args.device,
+                        train_options={**NavTaskConfig().train_options, **dict(args.option)},
                         progress=not args.no_progress)
     if args.cache is not None:
         cfg = replace(cfg, cache=args.cache)

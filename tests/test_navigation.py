@@ -16,7 +16,8 @@ from sims.robot import (add_robot, command_velocity, robot_contacts, robot_ids, 
                         set_robot_pose)
 from sims.scene import resolve_scene
 from tasks.nav_execute import drive
-from tasks.nav_map import FloorMap, RobotBody, floor_map_from_volume, true_floor_map
+from tasks.nav_map import (FloorMap, RobotBody, floor_map_from_volume, map_agreement,
+                           true_floor_map)
 from tasks.nav_planner import (PlanningError, astar, optimise_trajectory, path_length,
                                plan_grid_path, shortcut)
 
@@ -222,3 +223,22 @@ def test_the_base_follows_a_planned_path_without_contacts(room_with_robot):
         log = drive(model, data, ids, path, floor_geoms=(model.geom("floor").id,))
         assert log.reached and not log.contacts, (a, b, log.contacts)
         assert np.linalg.norm(robot_pose(data, ids)[:2] - b) < 0.1
+
+
+def test_map_agreement_counts_phantoms_misses_and_standable_cells():
+    truth = np.zeros((20, 20), bool)
+    truth[8:12, 8:12] = True                      # a 4x4 obstacle
+    found = truth.copy()
+    found[8, 8] = False                            # one cell missed
+    found[2, 2] = True                             # one phantom speck
+    t = FloorMap(truth, (0.0, 0.0), 0.1)
+    same = map_agreement(t, t, 0.15)
+    assert same["iou"] == 1.0 and same["phantom"] == 0.0 and same["missed"] == 0.0
+    assert same["standable_kept"] == 1.0 and same["standable_wrong"] == 0.0
+    a = map_agreement(FloorMap(found, (0.0, 0.0), 0.1), t, 0.15)
+    assert a["iou"] == pytest.approx(15 / 17)
+    assert a["phantom"] == pytest.approx(1 / 384) and a["missed"] == pytest.approx(1 / 16)
+    assert a["standable_kept"] < 1.0               # the speck blocks the cells around it
+    # a map on a shifted grid is read at the true map's cell centres; beyond it counts blocked
+    shifted = map_agreement(FloorMap(truth[2:], (0.2, 0.0), 0.1), t, 0.15)
+    assert shifted["missed"] == 0.0 and shifted["phantom"] == pytest.approx(40 / 384)

@@ -8,6 +8,7 @@ import torch
 
 from nerfbot.data import load_dataset
 from nerfbot.eval.evaluation import evaluate
+from nerfbot.models.occupancy import scale_gradient
 from nerfbot.ops.metrics import psnr
 from nerfbot.train.checkpoints import CHECKPOINT
 from nerfbot.train.runs import load_model
@@ -363,3 +364,37 @@ def test_density_noise_scales_training_densities_and_leaves_rendering_alone(tiny
     torch.testing.assert_close(noisy.render_rays(rays).rgb, clean.render_rays(rays).rgb)
     with pytest.raises(ValueError, match="density_noise"):
         model("bad", density_noise=-1.0)
+
+
+def test_scale_gradient_keeps_values_and_scales_gradients():
+    x = torch.tensor([1.0, 2.0, 3.0], requires_grad=True)
+    y = scale_gradient(x, torch.tensor([0.0, 0.5, 1.0]))
+    torch.testing.assert_close(y, x.detach())
+    y.sum().backward()
+    torch.testing.assert_close(x.grad, torch.tensor([0.0, 0.5, 1.0]))
+
+
+def test_near_gradient_distance_damps_only_samples_near_the_camera(tiny_capture, tmp_path):
+    """The same samples and loss; gradients reach the field less from samples closer to their
+    camera than the distance (here farther than the whole box: every one is damped)."""
+    ds = load_dataset(tiny_capture[0])
+
+    def model(folder, **options):
+        cfg = TrainConfig(method="ngp", max_steps=1, progress=False,
+                          options={**TINY_NGP, "density_noise": 0.0, **options})
+        return Trainer(ds, tmp_path / folder, cfg).model
+
+    plain, damped = model("a"), model("b", near_gradient_distance=100.0)
+    damped.load_state_dict(plain.state_dict())
+    rays = ds.cameras(ds.indices("train")[:1]).rays(0)
+    grads = []
+    for m in (plain, damped):
+        out = m.render_rays(rays, torch.Generator().manual_seed(3))
+        out.rgb.sum().backward()
+        grads.append((out.rgb.detach(), torch.cat([p.grad.reshape(-1) for p in
+                                                   m.field.parameters() if p.grad is not None])))
+    torch.testing.assert_close(grads[0][0], grads[1][0])
+    ratio = float(grads[1][1].norm() / grads[0][1].norm())
+    assert 0.0 < ratio < 0.01, ratio
+    with pytest.raises(ValueError, match="near_gradient_distance"):
+        model("bad", near_gradient_distance=-1.0)

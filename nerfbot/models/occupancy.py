@@ -74,6 +74,13 @@ class OccupancyModelConfig:
     field settles for veils and the expected depth falls behind them. Under the noise a veil's
     opacity, and so its pixel, flickers from step to step while a saturated surface's does not,
     so training prefers surfaces. Rendering never adds noise."""
+    near_gradient_distance: float = 0.0
+    """d0, metres: the gradients a training sample at distance t from its camera sends to the
+    field are scaled by min(1, (t / d0)^2) (Philip and Deschaintre, "Floaters No More", 2023);
+    the forward pass is unchanged. Space next to a camera fills a large part of its image and
+    little of any other's, so a floater there can fit one view's pixels at little cost to the
+    rest; the scaling balances how much each region's density is pulled by how large it looks.
+    Matters for cameras that stand inside the scene (rooms); 0 turns it off."""
     supersample: int = 1
     """S: rays per pixel axis for colour. Training compares the mean colour of S x S rays,
     one through a random point of each cell of an S x S grid over the pixel, with the pixel's
@@ -100,7 +107,7 @@ class OccupancyModelConfig:
             if getattr(self, name) < 1:
                 raise ValueError(f"option {name}: must be >= 1, got {getattr(self, name)}")
         for name in ("grid_warmup_steps", "grid_threshold", "cone_angle", "distortion_weight",
-                     "density_noise", "shade_min_weight"):
+                     "density_noise", "shade_min_weight", "near_gradient_distance"):
             if getattr(self, name) < 0:
                 raise ValueError(f"option {name}: must be >= 0, got {getattr(self, name)}")
         for name in ("early_stop_transmittance", "supersample_from", "full_march_kept_fraction"):
@@ -211,6 +218,10 @@ class OccupancyModel(Model):
             noise = torch.randn(sigma.shape, generator=generator, device=sigma.device)
             sigma = sigma * torch.exp(self.config.density_noise * noise)
         rgb = self.field.color(feat, d, gather_rows(cond, ray_idx))
+        if self.config.near_gradient_distance > 0:
+            scale = (0.5 * (ts + te) / self.config.near_gradient_distance).square().clamp_max(1.0)
+            sigma = scale_gradient(sigma, scale)
+            rgb = scale_gradient(rgb, scale[:, None])
         return composite(sigma, rgb, ts, te, ray_idx, n, self.background(rays.directions),
                          t_far, rays.z_per_t, with_median=False)
 
@@ -341,6 +352,13 @@ class OccupancyModel(Model):
             return max(64, min(1 << 16, 2 * target // self.config.render_steps))
         per_ray = max(last_samples, 1) / max(n_rays, 1)
         return int(max(64, min(1 << 16, target / per_ray)))
+
+
+def scale_gradient(x: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """``x`` unchanged in the forward pass; its gradient multiplied by ``scale`` (broadcast to
+    ``x``'s shape, no gradient of its own)."""
+    scale = scale.detach().to(x.dtype)
+    return x * scale + (x * (1.0 - scale)).detach()
 
 
 def gather_rows(cond: Optional[torch.Tensor], idx: torch.Tensor) -> Optional[torch.Tensor]:

@@ -1,0 +1,56 @@
+"""tasks.localise's pieces: robot views on the free floor, the summary and its plot, the
+command line's errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tasks.localise import main, plot_basin, robot_views, summarize
+from tasks.nav_map import true_floor_map
+from tasks.navigate import NavTaskConfig, World
+
+
+def test_robot_views_stand_on_free_floor():
+    cfg = NavTaskConfig(capture_size=32)
+    world = World("room:0", cfg)
+    try:
+        gt = true_floor_map(world.model, world.data, cfg.body, cfg.map_cell)
+        poses = robot_views(world, cfg, 6, seed=3)
+        assert len(poses) == 6
+        free = gt.free_for(cfg.robot.radius + cfg.margin)
+        for x, y, yaw in poses:
+            i, j = gt.to_cell([x, y])
+            assert free[i, j] and -np.pi <= yaw <= np.pi
+        again = robot_views(world, cfg, 6, seed=3)
+        assert all(np.array_equal(a, b) for a, b in zip(poses, again))
+        world.reset(*poses[0])
+        image = world.observe()
+        assert image.shape == (32, 32, 3) and image.std() > 1.0   # the room, not a blank
+    finally:
+        world.close()
+
+
+def test_summary_rates_and_plot(tmp_path):
+    levels = [(0.02, 1.0), (0.3, 20.0)]
+    records = [{"estimator": "inerf", "translation": t, "rotation": r, "error_m": e,
+                "error_deg": 0.5, "seconds": 1.0, "success": e < 0.02}
+               for (t, r), errors in zip(levels, ([0.01, 0.01, 0.05], [0.5, 0.5, 0.01]))
+               for e in errors]
+    summary = summarize(records, levels, ["inerf"])
+    rates = [row["success_rate"] for row in summary["rows"]]
+    assert rates == pytest.approx([2 / 3, 1 / 3])
+    plot_basin(summary, tmp_path / "basin.png")
+    assert (tmp_path / "basin.png").stat().st_size > 1000
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--estimators", "magic"], "unknown"),
+    (["--levels", "0.1"], "levels"),
+    (["--views", "0"], "views"),
+])
+def test_command_line_errors(args, message, tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(args + ["--out", str(tmp_path / "out")])
+    assert exit_info.value.code == 2
+    assert message in capsys.readouterr().err
