@@ -224,30 +224,41 @@ def field_floor_map(model, world: World, cfg: NavTaskConfig) -> FloorMap:
 
 
 def sensor_floor_map(data: Path, world: World, cfg: NavTaskConfig) -> FloorMap:
-    """Floor map of the depth sensor's training-view readings fused into a TSDF (open3d): the
-    surface points of the fused volume mark occupied cells."""
+    """Floor map of the depth sensor's training-view readings fused into a TSDF (open3d)."""
     ds = load_dataset(data)
-    voxel = cfg.map_cell / 2
-    tsdf = o3d.pipelines.integration.ScalableTSDFVolume(
-        voxel_length=voxel, sdf_trunc=4 * voxel,
-        color_type=o3d.pipelines.integration.TSDFVolumeColorType.NoColor)
-    flip = np.diag([1.0, -1.0, -1.0, 1.0])           # OpenGL camera -> OpenCV camera
-    cam = ds.cameras()
+    depths = []
     for i in ds.indices("train"):
-        depth = ds.sensor_depths[i] if i < len(ds.sensor_depths) else None
-        if depth is None:
+        if i >= len(ds.sensor_depths) or ds.sensor_depths[i] is None:
             raise ValueError(f"{data}: view {i} has no sensor depth (capture with a sensor)")
+        depths.append(ds.sensor_depths[i])
+    return tsdf_floor_map(ds.cameras(list(ds.indices("train"))), depths, world, cfg)
+
+
+def tsdf_floor_map(cams, depths: list, world: World, cfg: NavTaskConfig) -> FloorMap:
+    """Floor map of z-depth images (each (H, W) metres, NaN = no reading) from cameras
+    ``cams`` fused into a TSDF (open3d): the surface points of the fused volume mark occupied
+    grid points."""
+    bounds, resolution = map_grid(world, cfg)
+    voxel = cfg.map_cell / 2
+    edge = float((bounds[1] - bounds[0]).max()) + 2 * voxel
+    # a cube over the room (open3d 0.20's ScalableTSDFVolume extracted no surface from these
+    # 128x128 views); z from just below the floor
+    tsdf = o3d.pipelines.integration.UniformTSDFVolume(
+        length=edge, resolution=int(np.ceil(edge / voxel)), sdf_trunc=4 * voxel,
+        color_type=o3d.pipelines.integration.TSDFVolumeColorType.NoColor,
+        origin=(bounds[0] - voxel).astype(np.float64))
+    flip = np.diag([1.0, -1.0, -1.0, 1.0])           # OpenGL camera -> OpenCV camera
+    for i, depth in enumerate(depths):
         h, w = depth.shape
-        intr = o3d.camera.PinholeCameraIntrinsic(w, h, float(cam.fx[i]), float(cam.fy[i]),
-                                                 float(cam.cx[i]) - 0.5, float(cam.cy[i]) - 0.5)
+        intr = o3d.camera.PinholeCameraIntrinsic(w, h, float(cams.fx[i]), float(cams.fy[i]),
+                                                 float(cams.cx[i]) - 0.5, float(cams.cy[i]) - 0.5)
         d = np.nan_to_num(depth, nan=0.0, posinf=0.0).astype(np.float32)
         rgbd = o3d.geometry.RGBDImage.create_from_color_and_depth(
             o3d.geometry.Image(np.zeros((h, w, 3), np.uint8)), o3d.geometry.Image(d),
             depth_scale=1.0, depth_trunc=20.0, convert_rgb_to_intensity=False)
-        extrinsic = np.linalg.inv(cam.c2w[i].cpu().numpy().astype(float) @ flip)
+        extrinsic = np.linalg.inv(cams.c2w[i].cpu().numpy().astype(float) @ flip)
         tsdf.integrate(rgbd, intr, extrinsic)
     points = np.asarray(tsdf.extract_point_cloud().points)
-    bounds, resolution = map_grid(world, cfg)
     shape, spacing = grid_points(bounds, resolution)
     occupied = np.zeros(tuple(shape), bool)
     idx = np.rint((points - bounds[0]) / spacing).astype(int)
