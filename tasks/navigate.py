@@ -80,7 +80,9 @@ class NavTaskConfig:
     seed: int = 0
     map: str = "nerf"
     pose: str = "gt"
-    capture_views: int = 150
+    capture_views: int = 400
+    """Training views of a room: 150 leave a 7 x 5.6 m room sparse enough for the field to fit
+    them with fog (BENCHMARKS.md, section 9)."""
     capture_test_views: int = 10
     capture_size: int = 128
     train_steps: int = 2000
