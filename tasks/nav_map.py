@@ -86,6 +86,17 @@ class FloorMap:
         exceed the radius by that much."""
         return self.clearance() > radius + self.cell * math.sqrt(0.5)
 
+    def cleared(self, xy, radius: float) -> "FloorMap":
+        """A copy with the cells a body of ``radius`` (metres) standing at world ``xy`` fills
+        unblocked: every cell whose centre lies within ``radius`` plus half a cell diagonal of
+        xy's cell centre, so that :meth:`free_for` ``(radius)`` holds there. A robot knows the
+        floor under itself is free (ROS costmaps clear the robot's footprint the same way)."""
+        centre = self.to_cell(xy)
+        ii, jj = np.indices(self.shape)
+        near = np.hypot(ii - centre[0], jj - centre[1]) * self.cell \
+            <= radius + self.cell * math.sqrt(0.5) + 1e-9
+        return FloorMap(self.blocked & ~near, self.origin, self.cell)
+
     def to_cell(self, xy) -> np.ndarray:
         """(..., 2) int cell indices of world points (..., 2), unclipped."""
         return np.rint((np.asarray(xy, float) - self.origin) / self.cell).astype(int)

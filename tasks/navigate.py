@@ -286,8 +286,10 @@ def draw_pairs(gt_map: FloorMap, cfg: NavTaskConfig, seed: int) -> list[tuple[np
 
 
 def plan(model, fmap: FloorMap, cfg: NavTaskConfig, start, goal) -> tuple[np.ndarray, dict]:
-    """A* + shortcuts on ``fmap``; with a field, trajectory optimisation through its density."""
+    """A* + shortcuts on ``fmap`` (the floor the robot covers at ``start`` counted free); with a
+    field, trajectory optimisation through its density."""
     body = cfg.body
+    fmap = fmap.cleared(start, body.radius + cfg.margin)   # the robot stands there
     path = plan_grid_path(fmap, body, start, goal, margin=cfg.margin)
     path = shortcut(path, fmap, body.radius + cfg.margin)
     info = {}

@@ -148,6 +148,22 @@ def test_planner_refuses_a_start_inside_an_obstacle_and_offers_the_nearest_free_
     assert path_length(short) <= path_length(path) + 1e-9 and len(short) < len(path)
 
 
+def test_clearing_the_robots_footprint_frees_its_start_and_nothing_else():
+    blocked = np.zeros((40, 40), bool)
+    blocked[20, 16] = True                    # a phantom speck 0.2 m from the start
+    blocked[30:, :] = True                    # a wall 0.5 m beyond it
+    fmap = FloorMap(blocked, (0.0, 0.0), 0.05)
+    body = RobotBody(radius=0.3)
+    with pytest.raises(PlanningError, match="start .* closer than the robot's radius"):
+        plan_grid_path(fmap, body, (1.0, 1.0), (1.0, 0.4))
+    cleared = fmap.cleared((1.0, 1.0), body.radius)
+    assert cleared.free_for(body.radius)[20, 20]
+    assert not cleared.blocked[20, 16] and cleared.blocked[30:, :].all()
+    assert fmap.blocked[20, 16]               # a copy: the map itself is untouched
+    path = plan_grid_path(cleared, body, (1.0, 1.0), (1.0, 0.4))
+    assert np.allclose(path[[0, -1]], [[1.0, 1.0], [1.0, 0.4]])
+
+
 def test_trajectory_optimisation_moves_a_path_off_a_faint_obstacle():
     """A straight path grazing a low-density ball (a field's fog, below the map's obstacle
     threshold) is pushed away from it, start and goal fixed."""
