@@ -193,3 +193,41 @@ def test_supersampled_render_averages_colour_over_the_pixel_and_keeps_centre_dep
     assert np.abs(img["rgb"] - centre["rgb"]).max() > 0.2
     # depth queries do not pay for the colour rays: the same map either way
     np.testing.assert_array_equal(depth(model, cams, 0), centre["z_depth"])
+
+
+class WideStripedSlabField(StripedSlabField):
+    """Stripes 20 cm wide: uniform regions a few pixels across, edges between them."""
+
+    def color(self, feat, d, cond=None):
+        stripe = (torch.floor(feat[:, 0] / 0.2) % 2).float()
+        return torch.stack([stripe, 1 - stripe, torch.full_like(stripe, 0.5)], -1)
+
+
+def test_supersample_tolerance_casts_extra_rays_only_at_edges():
+    """With a tolerance, pixels whose 3 x 3 centre colours span more than it get the S x S
+    mean; the others keep their centre ray. 0 is the full supersampled render; the model's
+    option is the default."""
+    from nerfbot.models.occupancy import OccupancyModelConfig
+    from nerfbot.query.render import edge_pixels
+
+    aabb = torch.tensor([[-1.0, -1.0, 0.0], [1.0, 1.0, 1.0]])
+    model = OccupancyModel(WideStripedSlabField(), FixedBackground((1.0, 1.0, 1.0)), aabb,
+                           OccupancyModelConfig(supersample=2, supersample_tolerance=0.1)).eval()
+    cams, _ = _down_camera(size=24)
+    centre = render_image(model, cams, 0, supersample=1)
+    full = render_image(model, cams, 0, supersample=2, supersample_tolerance=0.0)
+    picked = np.zeros(24 * 24, bool)
+    picked[edge_pixels(centre["rgb"], 0.1)] = True
+    assert 0.05 < picked.mean() < 0.6           # the stripes' edges, not the whole image
+    for img in (render_image(model, cams, 0), render_image(model, cams, 0,
+                                                              supersample_tolerance=0.1)):
+        rgb, ref, c = (a.reshape(-1, 3) for a in (img["rgb"], full["rgb"], centre["rgb"]))
+        np.testing.assert_allclose(rgb[picked], ref[picked], atol=1e-6)
+        np.testing.assert_array_equal(rgb[~picked], c[~picked])
+        np.testing.assert_allclose(rgb, ref, atol=0.1)   # off only where nothing changes
+    # a tolerance above any colour difference: the centre render inside the border
+    inner = render_image(model, cams, 0, supersample_tolerance=2.0)["rgb"][1:-1, 1:-1]
+    np.testing.assert_array_equal(inner, centre["rgb"][1:-1, 1:-1])
+    # a uniform image: only the border, whose outside is unknown
+    assert edge_pixels(np.zeros((4, 4, 3)), 0.0).tolist() == [0, 1, 2, 3, 4, 7, 8, 11, 12, 13,
+                                                              14, 15]

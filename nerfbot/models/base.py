@@ -66,6 +66,10 @@ class Model(nn.Module, metaclass=abc.ABCMeta):
     #: their colours averaged (see :func:`nerfbot.train.trainer.batch_loss`); 1: the pixel centre.
     supersample: int = 1
 
+    #: Rendering casts the S x S rays only through pixels whose 3 x 3 neighbourhood of centre-ray
+    #: colours spans more than this (:func:`nerfbot.query.render.render_image`); 0: every pixel.
+    supersample_tolerance: float = 0.0
+
     def training_supersample(self, progress: float) -> int:
         """Rays per pixel axis of the training batch at ``progress`` in [0, 1] of the budget."""
         return self.supersample

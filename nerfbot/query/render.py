@@ -84,7 +84,8 @@ def render_rays_chunked(model: Model, rays: Rays, chunk: int = 1 << 14, cond=Non
 
 def render_image(model: Model, cameras: Cameras, index: int, downscale: int = 1,
                  chunk: int = 1 << 14, cond=None, thresholds: Sequence[float] = (),
-                 supersample: Optional[int] = None) -> dict:
+                 supersample: Optional[int] = None,
+                 supersample_tolerance: Optional[float] = None) -> dict:
     """Render camera ``index`` as numpy images: rgb (H, W, 3) in [0, 1], and (H, W) opacity,
     depth (ray distance, m), z_depth (m), median_depth (ray distance, m), median_z_depth (m);
     with ``thresholds`` (K values, 1/m) also threshold_depth / threshold_z_depth (K, H, W),
@@ -94,15 +95,33 @@ def render_image(model: Model, cameras: Cameras, index: int, downscale: int = 1,
     opacity are the means of S x S rays through each pixel (:meth:`Cameras.rays`), as the
     model was trained to match anti-aliased pixels; the depths always come from the ray
     through the pixel centre, as a depth camera (and the captures' ground truth) measures
-    them. S > 1 renders S^2 + 1 rays per pixel; pass 1 when only depth is needed."""
+    them. S > 1 renders up to S^2 + 1 rays per pixel; pass 1 when only depth is needed.
+    ``supersample_tolerance`` (None: the model's): the S x S rays go only through pixels
+    whose 3 x 3 neighbourhood of centre colours spans more than it (:func:`edge_pixels`); 0
+    sends them through every pixel."""
     s = model.supersample if supersample is None else supersample
+    tol = getattr(model, "supersample_tolerance", 0.0) if supersample_tolerance is None \
+        else float(supersample_tolerance)
     h = int(cameras.height[index]) // downscale
     w = int(cameras.width[index]) // downscale
     out = _render_camera_rays(model, cameras.rays(index, downscale), chunk, cond, thresholds)
     if s > 1:
-        fine = _render_camera_rays(model, cameras.rays(index, downscale, s), chunk, cond, ())
-        for k, shape in (("rgb", (h, s, w, s, 3)), ("opacity", (h, s, w, s))):
-            out[k] = fine[k].reshape(shape).mean((1, 3)).reshape(out[k].shape)
+        fine_rays = cameras.rays(index, downscale, s)
+        if tol > 0:
+            pick = torch.as_tensor(edge_pixels(out["rgb"].reshape(h, w, 3).cpu().numpy(), tol))
+        else:
+            pick = torch.arange(h * w)
+        if len(pick):
+            # the S x S fine-grid rays of each picked pixel, pixel after pixel
+            py, px = pick // w, pick % w
+            dy, dx = torch.meshgrid(torch.arange(s), torch.arange(s), indexing="ij")
+            fine = (py[:, None] * s + dy.reshape(1, -1)) * (w * s) + px[:, None] * s \
+                + dx.reshape(1, -1)
+            sub = _render_camera_rays(model, fine_rays[fine.reshape(-1).to(fine_rays.origins.device)],
+                                      chunk, cond, ())
+            pick = pick.to(out["rgb"].device)
+            out["rgb"][pick] = sub["rgb"].reshape(len(pick), s * s, 3).mean(1)
+            out["opacity"][pick] = sub["opacity"].reshape(len(pick), s * s).mean(1)
     img = {k: v.cpu().numpy() for k, v in out.items()}
     result = {"rgb": img["rgb"].reshape(h, w, 3).clip(0, 1),
               **{k: img[k].reshape(h, w) for k in _IMAGE_KEYS[1:]}}
@@ -110,6 +129,22 @@ def render_image(model: Model, cameras: Cameras, index: int, downscale: int = 1,
         if k in img:
             result[k] = img[k].reshape(-1, h, w)
     return result
+
+
+def edge_pixels(rgb: np.ndarray, tolerance: float) -> np.ndarray:
+    """(P,) row-major indices of the pixels of ``rgb`` (H, W, 3) whose 3 x 3 neighbourhood
+    spans more than ``tolerance`` (max - min) in some channel: where one ray per pixel may not
+    stand for the pixel's mean. The span bounds every neighbour's difference from the centre,
+    so no pixel with a neighbour more than ``tolerance`` away is missed. Pixels on the image's
+    border always count: what lies beyond them is unknown."""
+    from scipy import ndimage
+
+    spread = ndimage.maximum_filter(rgb, size=(3, 3, 1), mode="nearest") \
+        - ndimage.minimum_filter(rgb, size=(3, 3, 1), mode="nearest")
+    edge = spread.max(axis=-1) > tolerance
+    edge[[0, -1], :] = True
+    edge[:, [0, -1]] = True
+    return np.flatnonzero(edge)
 
 
 def _render_camera_rays(model: Model, rays: Rays, chunk: int, cond, thresholds) -> dict:
