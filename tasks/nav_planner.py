@@ -81,7 +81,10 @@ def nearest_free(free: np.ndarray, cell: tuple[int, int]) -> Optional[tuple[int,
     return int(idx[k, 0]), int(idx[k, 1])
 
 
-def _check_endpoint(fmap: FloorMap, free: np.ndarray, xy, what: str, radius: float) -> tuple:
+def _check_endpoint(fmap: FloorMap, free: np.ndarray, xy, what: str, radius: float,
+                    reach: float = 0.0) -> tuple:
+    """The free cell of endpoint ``xy``: its own, else (with ``reach`` > 0) the nearest free
+    cell whose centre lies within ``reach`` metres of it; PlanningError otherwise."""
     cell = tuple(int(v) for v in fmap.to_cell(xy))
     where = f"({xy[0]:.2f}, {xy[1]:.2f}) m"
     if not fmap.inside(cell):
@@ -89,6 +92,8 @@ def _check_endpoint(fmap: FloorMap, free: np.ndarray, xy, what: str, radius: flo
     if free[cell]:
         return cell
     near = nearest_free(free, cell)
+    if near is not None and np.linalg.norm(fmap.to_world(near) - np.asarray(xy)) <= reach + 1e-9:
+        return near
     offer = "no cell of the map is free" if near is None else \
         "the nearest point where it can is ({:.2f}, {:.2f}) m".format(*fmap.to_world(near))
     reason = "inside an obstacle" if fmap.blocked[cell] else \
@@ -98,22 +103,27 @@ def _check_endpoint(fmap: FloorMap, free: np.ndarray, xy, what: str, radius: flo
 
 
 def plan_grid_path(fmap: FloorMap, body: RobotBody, start_xy, goal_xy,
-                   margin: float = 0.0) -> np.ndarray:
+                   margin: float = 0.0, goal_reach: float = 0.0) -> np.ndarray:
     """A* from ``start_xy`` to ``goal_xy`` (world x, y, metres) over the cells where the body,
     its radius grown by ``margin``, can stand. Returns (N, 2) world points from start to goal
-    (the exact endpoints at both ends, cell centres between). PlanningError when an endpoint is
-    not free (naming the nearest free point) or when no path connects them."""
+    (the exact endpoints at both ends, cell centres between). A goal where the body cannot
+    stand is replaced by the nearest cell centre where it can, if that lies within
+    ``goal_reach`` metres (a goal is reached within a tolerance), which then ends the path.
+    PlanningError when an endpoint is not free (naming the nearest free point) or when no path
+    connects them."""
     radius = body.radius + margin
     free = fmap.free_for(radius)
     start = _check_endpoint(fmap, free, start_xy, "start", radius)
-    goal = _check_endpoint(fmap, free, goal_xy, "goal", radius)
+    goal = _check_endpoint(fmap, free, goal_xy, "goal", radius, goal_reach)
     cells = astar(free, start, goal)
     if cells is None:
         raise PlanningError(f"no path for a robot of radius {radius:.2f} m from "
                             f"({start_xy[0]:.2f}, {start_xy[1]:.2f}) to "
                             f"({goal_xy[0]:.2f}, {goal_xy[1]:.2f}) m on this map")
     pts = fmap.to_world(np.asarray(cells))
-    pts[0], pts[-1] = start_xy, goal_xy
+    pts[0] = start_xy
+    if goal == tuple(int(v) for v in fmap.to_cell(goal_xy)):
+        pts[-1] = goal_xy
     return pts
 
 

@@ -164,6 +164,21 @@ def test_clearing_the_robots_footprint_frees_its_start_and_nothing_else():
     assert np.allclose(path[[0, -1]], [[1.0, 1.0], [1.0, 0.4]])
 
 
+def test_a_goal_within_reach_of_standable_floor_moves_there_and_no_further():
+    blocked = np.zeros((40, 40), bool)
+    blocked[:, 30:] = True                    # a wall at y >= 1.5 m
+    fmap = FloorMap(blocked, (0.0, 0.0), 0.05)
+    body = RobotBody(radius=0.2)              # stands where y <= 1.5 - 0.2 - 0.035
+    with pytest.raises(PlanningError, match="goal .* closer than the robot's radius"):
+        plan_grid_path(fmap, body, (1.0, 0.5), (1.0, 1.3))
+    path = plan_grid_path(fmap, body, (1.0, 0.5), (1.0, 1.3), goal_reach=0.05)
+    assert np.allclose(path[-1], [1.0, 1.25])  # the nearest standable cell centre, 5 cm away
+    with pytest.raises(PlanningError, match="nearest point where it can is"):
+        plan_grid_path(fmap, body, (1.0, 0.5), (1.0, 1.4), goal_reach=0.05)   # 15 cm away
+    exact = plan_grid_path(fmap, body, (1.0, 0.5), (1.02, 1.0), goal_reach=0.05)
+    assert np.allclose(exact[-1], [1.02, 1.0])  # a standable goal stays exact
+
+
 def test_trajectory_optimisation_moves_a_path_off_a_faint_obstacle():
     """A straight path grazing a low-density ball (a field's fog, below the map's obstacle
     threshold) is pushed away from it, start and goal fixed."""

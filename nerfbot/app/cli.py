@@ -1,4 +1,4 @@
-"""The ``nerfbot`` command: capture, train, eval, render, demo, bench.
+"""The ``nerfbot`` command: capture, train, eval, render, export, demo, bench.
 
 Heavy imports happen inside each command so ``nerfbot --help`` stays instant. ``sims`` is
 imported before anything that imports ``mujoco``, so headless machines get ``MUJOCO_GL=egl``.
@@ -866,6 +866,10 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
                       help="--sweep: the camera moves through K orbit positions (default 1: "
                            "a fixed camera)")
     p.set_defaults(func=cmd_render)
+
+    from nerfbot.app.export import add_export_parser
+
+    add_export_parser(sub, _positive_int, _positive_float, _device, _unit_time, _joint_values)
 
     p = sub.add_parser("demo", help="capture the tabletop, train ngp, evaluate, write renders")
     p.add_argument("--out", type=Path, default=Path("nerfbot-demo"),

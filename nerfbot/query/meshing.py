@@ -17,6 +17,9 @@ import trimesh
 
 from nerfbot.query.density import default_density_threshold, density_grid
 
+#: Distance (metres) within which a sample counts as matched in F-scores: 1 cm.
+DEFAULT_FSCORE_DISTANCE = 0.01
+
 try:  # optional: open3d's isosurfaces otherwise
     from skimage.measure import marching_cubes as skimage_marching_cubes
 except ImportError:
@@ -52,7 +55,7 @@ def marching_cubes(volume: np.ndarray, level: float, backend: str = "auto"
 
 def field_mesh(model, resolution: int = 128, threshold: Optional[float] = None, bounds=None,
                chunk: int = 1 << 16, backend: str = "auto",
-               respect_occupancy: bool = True) -> trimesh.Trimesh:
+               respect_occupancy: bool = True, cond=None) -> trimesh.Trimesh:
     """Mesh of a trained model's density field: marching cubes on a grid over ``bounds``.
 
     Args:
@@ -64,6 +67,8 @@ def field_mesh(model, resolution: int = 128, threshold: Optional[float] = None, 
             content bounds to mesh only the content.
         backend: marching-cubes implementation, see :func:`marching_cubes`.
         respect_occupancy: zero density where the occupancy grid (if any) is empty.
+        cond: (D,) condition vector of a conditioned model (a time, joint values); None for
+            static ones.
 
     Returns:
         A world-frame trimesh (metres); empty (no faces) when no density reaches the threshold.
@@ -73,7 +78,7 @@ def field_mesh(model, resolution: int = 128, threshold: Optional[float] = None, 
     aabb = model.aabb.detach().cpu().numpy()
     bounds = aabb if bounds is None else np.asarray(bounds, float)
     level = default_density_threshold(aabb) if threshold is None else float(threshold)
-    volume, spacing = density_grid(model, bounds, resolution, chunk, respect_occupancy)
+    volume, spacing = density_grid(model, bounds, resolution, chunk, respect_occupancy, cond)
     volume = np.pad(volume, 1, constant_values=0.0)
     verts, faces = marching_cubes(volume, level, backend)
     if len(faces) == 0:
@@ -152,7 +157,8 @@ def surface_distance(points: np.ndarray, mesh: trimesh.Trimesh) -> np.ndarray:
 
 
 def compare_meshes(pred: trimesh.Trimesh, gt: trimesh.Trimesh, count: int = 100_000,
-                   bounds=None, cameras: Optional[tuple] = None, seed: int = 0) -> dict:
+                   bounds=None, cameras: Optional[tuple] = None, seed: int = 0,
+                   fscore_at: float = DEFAULT_FSCORE_DISTANCE) -> dict:
     """Chamfer distance between surfaces ``pred`` and ``gt``, metres -> reported in mm.
 
     Each surface gets ``count`` area-uniform samples; accuracy is the mean distance from the
@@ -168,10 +174,13 @@ def compare_meshes(pred: trimesh.Trimesh, gt: trimesh.Trimesh, count: int = 100_
             camera sees (each mesh occludes its own samples), so surfaces no camera observes
             (an object's base on the table, the table's underside) do not count.
 
+        fscore_at: distance (metres) within which a sample counts as matched, for precision
+            (pred samples near gt), recall (gt samples near pred) and their F-score.
+
     Returns:
-        chamfer_mm, accuracy_mm (pred -> gt), completeness_mm (gt -> pred), pred_points and
-        gt_points (samples kept), pred_faces. NaN distances when a surface is empty or none of
-        its samples is kept.
+        chamfer_mm, accuracy_mm (pred -> gt), completeness_mm (gt -> pred), precision, recall
+        and fscore (fractions in [0, 1]), pred_points and gt_points (samples kept), pred_faces.
+        NaN distances (and 0 scores) when a surface is empty or none of its samples is kept.
     """
     kept = []
     for i, mesh in enumerate((pred, gt)):
@@ -181,9 +190,55 @@ def compare_meshes(pred: trimesh.Trimesh, gt: trimesh.Trimesh, count: int = 100_
         if cameras is not None and len(pts):
             pts = pts[visible_mask(pts, mesh, *cameras)]
         kept.append(pts)
-    nan = float("nan")
-    acc = float(surface_distance(kept[0], gt).mean()) if len(kept[0]) and len(gt.faces) else nan
-    comp = float(surface_distance(kept[1], pred).mean()) if len(kept[1]) and len(pred.faces) else nan
-    return {"chamfer_mm": 1e3 * 0.5 * (acc + comp), "accuracy_mm": 1e3 * acc,
-            "completeness_mm": 1e3 * comp, "pred_points": len(kept[0]),
+    to_gt = surface_distance(kept[0], gt) if len(gt.faces) else np.zeros(0)
+    to_pred = surface_distance(kept[1], pred) if len(pred.faces) else np.zeros(0)
+    return {**distance_scores(to_gt, to_pred, fscore_at), "pred_points": len(kept[0]),
             "gt_points": len(kept[1]), "pred_faces": int(len(pred.faces))}
+
+
+def distance_scores(to_gt: np.ndarray, to_pred: np.ndarray,
+                    fscore_at: float = DEFAULT_FSCORE_DISTANCE) -> dict:
+    """Chamfer-style scores from the distances (metres) of predicted samples to the true surface
+    (``to_gt``) and of true samples to the prediction (``to_pred``): chamfer_mm, accuracy_mm,
+    completeness_mm (means; NaN when a side has no samples), and precision, recall, fscore at
+    ``fscore_at`` metres (fractions; 0 when a side has no samples)."""
+    nan = float("nan")
+    acc = float(np.mean(to_gt)) if len(to_gt) else nan
+    comp = float(np.mean(to_pred)) if len(to_pred) else nan
+    precision = float(np.mean(to_gt <= fscore_at)) if len(to_gt) else 0.0
+    recall = float(np.mean(to_pred <= fscore_at)) if len(to_pred) else 0.0
+    fscore = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
+    return {"chamfer_mm": 1e3 * 0.5 * (acc + comp), "accuracy_mm": 1e3 * acc,
+            "completeness_mm": 1e3 * comp, "precision": precision, "recall": recall,
+            "fscore": fscore}
+
+
+def compare_cloud(points: np.ndarray, gt: trimesh.Trimesh, count: int = 100_000, bounds=None,
+                  cameras: Optional[tuple] = None, seed: int = 0,
+                  fscore_at: float = DEFAULT_FSCORE_DISTANCE) -> dict:
+    """Scores of a point cloud (N, 3) against the true surface ``gt``, as
+    :func:`compare_meshes`: accuracy from (a random ``count`` of) the cloud's points to the
+    ``gt`` surface, completeness from ``count`` visible ``gt`` samples to their nearest point
+    of the whole cloud (a cloud has no surface: the distance includes the gaps between its
+    points, small for dense clouds).
+
+    Returns:
+        :func:`distance_scores`' keys, pred_points (the cloud's points inside ``bounds``) and
+        gt_points (kept).
+    """
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points, float).reshape(-1, 3)
+    if bounds is not None and len(pts):
+        pts = pts[inside_bounds(pts, bounds)]
+    some = pts if len(pts) <= count else \
+        pts[np.random.default_rng(seed).choice(len(pts), count, replace=False)]
+    truth = sample_surface(gt, count, seed + 1)
+    if bounds is not None and len(truth):
+        truth = truth[inside_bounds(truth, bounds)]
+    if cameras is not None and len(truth):
+        truth = truth[visible_mask(truth, gt, *cameras)]
+    to_gt = surface_distance(some, gt) if len(gt.faces) else np.zeros(0)
+    to_pred = cKDTree(pts).query(truth)[0] if len(pts) and len(truth) else np.zeros(0)
+    return {**distance_scores(to_gt, to_pred, fscore_at), "pred_points": len(pts),
+            "gt_points": len(truth)}
