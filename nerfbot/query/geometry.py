@@ -32,7 +32,7 @@ import trimesh
 from tqdm.auto import tqdm
 
 from nerfbot.ops.cameras import Cameras, opengl_to_opencv
-from nerfbot.ops.pointcloud import depth_to_cloud, fuse_clouds
+from nerfbot.ops.pointcloud import depth_discontinuities, depth_to_cloud, fuse_clouds
 from nerfbot.query.density import default_density_threshold
 from nerfbot.query.meshing import field_mesh, inside_bounds
 from nerfbot.query.render import DEPTH_MODES, render_image
@@ -107,8 +107,6 @@ def render_depths(model, cameras: Cameras, query: DepthQuery = DepthQuery(),
 
 def _valid_depth(view: RenderedDepth, max_edge_jump: Optional[float]) -> np.ndarray:
     """The view's depth with flying pixels (and no-depth pixels) set to NaN."""
-    from nerfbot.ops.pointcloud import depth_discontinuities
-
     z = view.depth.copy()
     if max_edge_jump is not None:
         z[depth_discontinuities(z, max_edge_jump)] = np.nan

@@ -14,6 +14,7 @@ from typing import Optional
 import numpy as np
 import open3d as o3d
 import trimesh
+from scipy.spatial import cKDTree
 
 from nerfbot.query.density import default_density_threshold, density_grid
 
@@ -226,8 +227,6 @@ def compare_cloud(points: np.ndarray, gt: trimesh.Trimesh, count: int = 100_000,
         :func:`distance_scores`' keys, pred_points (the cloud's points inside ``bounds``) and
         gt_points (kept).
     """
-    from scipy.spatial import cKDTree
-
     pts = np.asarray(points, float).reshape(-1, 3)
     if bounds is not None and len(pts):
         pts = pts[inside_bounds(pts, bounds)]

@@ -16,6 +16,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 import torch
+from scipy import ndimage
 
 from nerfbot.models.base import Model
 from nerfbot.ops.cameras import Cameras, Rays
@@ -137,8 +138,6 @@ def edge_pixels(rgb: np.ndarray, tolerance: float) -> np.ndarray:
     stand for the pixel's mean. The span bounds every neighbour's difference from the centre,
     so no pixel with a neighbour more than ``tolerance`` away is missed. Pixels on the image's
     border always count: what lies beyond them is unknown."""
-    from scipy import ndimage
-
     spread = ndimage.maximum_filter(rgb, size=(3, 3, 1), mode="nearest") \
         - ndimage.minimum_filter(rgb, size=(3, 3, 1), mode="nearest")
     edge = spread.max(axis=-1) > tolerance
