@@ -470,6 +470,15 @@ def _render_dataset(args, run: Path, info, needed: bool):
         return None
 
 
+def _check_condition_flags(args, conditioning) -> None:
+    """--time / --joints only for runs conditioned on them (UsageError otherwise)."""
+    for flag, given, kind in (("--time", args.time is not None, "time"),
+                              ("--joints", bool(args.joints), "joints")):
+        if given and conditioning.kind != kind:
+            raise UsageError(f"{flag}: {args.run} is a {conditioning.kind} run, not conditioned "
+                             f"on {kind}")
+
+
 def _render_plan(args, model, info, ds):
     """Cameras and per-image conditions (or None) for ``nerfbot render`` (``ds``: the dataset
     of :func:`_render_dataset`)."""
@@ -480,11 +489,7 @@ def _render_plan(args, model, info, ds):
     from nerfbot.query.render import sweep_conditions
 
     conditioning = Conditioning.from_dict(info["spec"].get("conditioning"))
-    for flag, given, kind in (("--time", args.time is not None, "time"),
-                              ("--joints", bool(args.joints), "joints")):
-        if given and conditioning.kind != kind:
-            raise UsageError(f"{flag}: {args.run} is a {conditioning.kind} run, not conditioned "
-                             f"on {kind}")
+    _check_condition_flags(args, conditioning)
     fixed = None
     if args.time is not None or args.joints:
         fixed = conditioning.vector(args.time, args.joints)
@@ -620,11 +625,7 @@ def _export_condition(args, info):
     from nerfbot.data.conditioning import Conditioning
 
     conditioning = Conditioning.from_dict(info["spec"].get("conditioning"))
-    for flag, given, kind in (("--time", args.time is not None, "time"),
-                              ("--joints", bool(args.joints), "joints")):
-        if given and conditioning.kind != kind:
-            raise UsageError(f"{flag}: {args.run} is a {conditioning.kind} run, not conditioned "
-                             f"on {kind}")
+    _check_condition_flags(args, conditioning)
     if conditioning.kind == "time" and args.time is None:
         raise UsageError(f"{args.run} is time-conditioned: give --time T (one state is exported)")
     return conditioning.vector(args.time, args.joints)

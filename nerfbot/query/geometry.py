@@ -31,6 +31,7 @@ import torch
 import trimesh
 from tqdm.auto import tqdm
 
+from nerfbot.data.writers import write_bytes_atomic
 from nerfbot.ops.cameras import Cameras, opengl_to_opencv
 from nerfbot.ops.pointcloud import depth_discontinuities, depth_to_cloud, fuse_clouds
 from nerfbot.query.density import default_density_threshold
@@ -256,8 +257,8 @@ def tsdf_mesh(model, cameras: Cameras, query: DepthQuery = DepthQuery(),
 
 
 def _atomic_target(path: Path) -> Path:
-    """A hidden temporary beside ``path`` with the same suffix (writers pick the format from
-    it); the caller renames it over ``path`` once written."""
+    """A hidden temporary beside ``path`` with the same suffix (open3d picks the format from it
+    and writes only to paths); the caller renames it over ``path`` once written."""
     return path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
 
 
@@ -281,10 +282,5 @@ def write_mesh(mesh: trimesh.Trimesh, path) -> Path:
     path = Path(path)
     if path.suffix.lower() not in MESH_SUFFIXES:
         raise ValueError(f"{path}: meshes are written as {', '.join(MESH_SUFFIXES)}")
-    tmp = _atomic_target(path)
-    try:
-        mesh.export(str(tmp), file_type=path.suffix.lower().lstrip("."))
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
+    data = mesh.export(file_type=path.suffix.lower().lstrip("."))
+    return write_bytes_atomic(path, data.encode() if isinstance(data, str) else data)
