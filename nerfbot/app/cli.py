@@ -1,4 +1,4 @@
-"""The ``nerfbot`` command: capture, train, eval, render, export, demo, bench.
+"""The ``nerfbot`` command: capture, colmap, train, eval, render, export, demo, bench.
 
 Heavy imports happen inside each command so ``nerfbot --help`` stays instant. ``sims`` is
 imported before anything that imports ``mujoco``, so headless machines get ``MUJOCO_GL=egl``.
@@ -219,6 +219,7 @@ def _train_config(args, method: str, options: dict, max_seconds, background):
                        max_seconds=max_seconds, seed=args.seed, lr=args.lr,
                        options=options, background=background,
                        depth_weight=args.depth_weight,
+                       sparse_depth_weight=args.sparse_depth_weight,
                        eval_at_seconds=args.eval_at or (),
                        checkpoint_every_seconds=args.checkpoint_every_seconds,
                        checkpoint_every_steps=args.checkpoint_every_steps,
@@ -691,6 +692,69 @@ def cmd_export(args) -> int:
     return 0
 
 
+def cmd_colmap(args) -> int:
+    from nerfbot.data.errors import DatasetError
+    from nerfbot.data.readers import parse_dataset
+    from nerfbot.sfm.dataset import (check_new_folder, dataset_input, images_input,
+                                     poses_from_images)
+    from nerfbot.sfm.pipeline import SfmOptions
+
+    source, out = Path(args.input), Path(args.out)
+    if not source.is_dir():
+        raise UsageError(f"{source}: expected a folder of images or a dataset folder")
+    check_new_folder(out)
+    try:
+        parse_dataset(source)
+        is_dataset = True
+    except DatasetError as exc:
+        if "not a dataset folder" not in str(exc):
+            raise
+        is_dataset = False
+    if is_dataset:
+        if args.focal is not None:
+            raise UsageError(f"--focal: {source} is a dataset; its own intrinsics are used")
+        sfm_input = dataset_input(source)
+    else:
+        sfm_input = images_input(source, focal_px=args.focal)
+    if args.known_poses and not is_dataset:
+        raise UsageError(f"--known-poses: {source} is a folder of images; the poses come "
+                         "with a dataset")
+    if args.baseline is not None and sfm_input.true_c2w is not None:
+        raise UsageError(f"--baseline: {source} has poses, which fix the scale already")
+    baseline = None
+    if args.baseline is not None:
+        a, b, metres = args.baseline
+        try:
+            distance = float(metres)
+        except ValueError:
+            distance = math.nan
+        if not 0.0 < distance < math.inf:
+            raise UsageError(f"--baseline: the distance must be a positive number of metres, "
+                             f"got {metres!r}")
+        baseline = (a, b, distance)
+    options = SfmOptions(matcher=args.matcher, max_reproj_error_px=args.max_error,
+                         refine_rounds=args.refine_rounds, seed=args.seed)
+    report = poses_from_images(sfm_input, out, options, downscale=args.downscale,
+                               baseline=baseline, known_poses=args.known_poses,
+                               progress=not args.no_progress)
+    print(f"registered {report['registered']} of {report['images']} images in "
+          f"{report['seconds']['total']:.1f} s; {report['points']} points, "
+          f"{report['mean_reprojection_error_px']:.2f} px mean reprojection error")
+    if report["unregistered"]:
+        shown = ", ".join(report["unregistered"][:5])
+        more = " ..." if len(report["unregistered"]) > 5 else ""
+        print(f"not registered: {shown}{more}")
+    if "pose_errors" in report:
+        e = report["pose_errors"]
+        print(f"against the input's poses (after a similarity): rotation median "
+              f"{e['rotation_deg_median']:.3f} deg (max {e['rotation_deg_max']:.3f}), centre "
+              f"median {e['translation_percent_median']:.3f} % of the scene size "
+              f"(max {e['translation_percent_max']:.3f} %)")
+    print(f"poses: {report['frame']}")
+    print(f"wrote {out} (nerfstudio dataset; sfm_report.json, COLMAP model in colmap/)")
+    return 0
+
+
 def cmd_demo(args) -> int:
     from nerfbot.app.demo import run_demo
 
@@ -820,6 +884,10 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
                    help="depth supervision from the dataset's depth maps (DS-NeRF style, for "
                         "RGB-D captures): weight of the L1 depth error in scene-cube diagonals "
                         "(default 0: RGB only)")
+    p.add_argument("--sparse-depth-weight", type=float, default=0.0, metavar="W",
+                   help="DS-NeRF sparse depth supervision on the structure-from-motion "
+                        "keypoints nerfbot colmap writes (frames[].sparse_depth_file_path); "
+                        "0.1 is DS-NeRF's weight (default 0: off)")
     p.add_argument("--resume", action="store_true",
                    help="continue the run in --out (with the same data, method, options, "
                         "bounds, background and seed; the budgets may change)")
@@ -997,6 +1065,35 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
     cond.add_argument("--joints", type=_joint_values, default=None, metavar="NAME=V,...",
                       help="export at these joint positions (others at the middle of their range)")
     p.set_defaults(func=cmd_export)
+
+    p = sub.add_parser("colmap", help="camera poses from images (structure from motion with "
+                                      "pycolmap), written as a nerfstudio dataset")
+    p.add_argument("input", type=Path,
+                   help="a folder of images (.png, .jpg), or a dataset whose images to pose "
+                        "(its intrinsics are kept; its poses only measure and align the result)")
+    p.add_argument("--out", required=True, type=Path, help="dataset folder to write (new)")
+    p.add_argument("--matcher", default="exhaustive", choices=("exhaustive", "sequential"),
+                   help="match every pair (default), or each image with its next ones "
+                        "(video-like captures)")
+    p.add_argument("--focal", type=_positive_float, default=None, metavar="PX",
+                   help="images: known focal length in pixels (square pixels, centred); "
+                        "default: estimated")
+    p.add_argument("--downscale", type=_positive_int, default=1, metavar="N",
+                   help="write images N times smaller than the ones posed (default 1); SfM "
+                        "runs on the full images")
+    p.add_argument("--baseline", nargs=3, default=None, metavar=("IMAGE_A", "IMAGE_B", "M"),
+                   help="images: the distance in metres between two cameras, for metric poses")
+    p.add_argument("--known-poses", action="store_true",
+                   help="a dataset: keep its poses and only triangulate sparse points (sparse "
+                        "depth for --sparse-depth-weight)")
+    p.add_argument("--max-error", type=_positive_float, default=1.0, metavar="PX",
+                   help="refinement drops observations beyond this reprojection error "
+                        "(default 1 px)")
+    p.add_argument("--refine-rounds", type=int, default=3,
+                   help="filter + bundle-adjustment rounds after mapping (default 3; 0 = off)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=cmd_colmap)
 
     p = sub.add_parser("demo", help="capture the tabletop, train ngp, evaluate, write renders")
     p.add_argument("--out", type=Path, default=Path("nerfbot-demo"),

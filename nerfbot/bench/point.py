@@ -112,10 +112,12 @@ def _resize(img: Optional[np.ndarray], w: int, h: int, nearest: bool):
 def downscale_dataset(ds, size: int):
     """``ds`` with every frame resized so its longer side is ``size`` pixels (aspect kept);
     frames already that small are kept. Colours use area averaging; depth, masks and
-    segmentation use the nearest pixel (no blending across surfaces). Intrinsics scale along."""
+    segmentation use the nearest pixel (no blending across surfaces). Intrinsics and sparse-depth
+    keypoints scale along."""
     intr, sizes = ds.intrinsics.copy(), ds.sizes.copy()
     lists = {k: list(getattr(ds, k)) for k in ("images", "alphas", "depths", "masks",
                                                "segmentations", "sensor_depths")}
+    keypoints = list(ds.keypoints)
     for i in range(len(ds)):
         w, h = (int(v) for v in ds.sizes[i])
         scale = size / max(w, h)
@@ -127,7 +129,9 @@ def downscale_dataset(ds, size: int):
         for key, items in lists.items():
             if i < len(items):
                 items[i] = _resize(items[i], nw, nh, nearest=key not in ("images", "alphas"))
-    return replace(ds, intrinsics=intr, sizes=sizes, **lists)
+        if i < len(keypoints) and keypoints[i] is not None:
+            keypoints[i] = keypoints[i] * np.array([nw / w, nh / h, 1.0, 1.0], np.float32)
+    return replace(ds, intrinsics=intr, sizes=sizes, keypoints=keypoints, **lists)
 
 
 # -- memory ------------------------------------------------------------------------------------

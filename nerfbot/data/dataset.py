@@ -21,7 +21,7 @@ class Dataset:
 
     Attributes:
         root: folder the dataset was read from.
-        format: "nerfstudio", "blender" or "dnerf".
+        format: "nerfstudio", "blender", "dnerf" or "colmap".
         file_paths: N image paths relative to ``root`` (as written in the JSON).
         images: N arrays (H_i, W_i, 3) uint8 RGB, already composited on ``background`` when the
             source had an alpha channel.
@@ -49,6 +49,9 @@ class Dataset:
             images were composited on a fixed colour.
         sensor_depths: N arrays (H_i, W_i) float32 z-depth of a simulated depth sensor (NaN = no
             return) or None per frame; [] when the reader had none to offer.
+        keypoints: N arrays (K_i, 4) float32 of sparse depth (structure-from-motion points seen
+            in the frame): u, v (pixels, centres at +0.5, undistorted), z-depth and its
+            standard deviation (metres); None per frame without; [] when the reader had none.
     """
 
     root: Path
@@ -72,6 +75,7 @@ class Dataset:
     background: object = "learned"
     extras: dict = field(default_factory=dict)
     sensor_depths: list = field(default_factory=list)
+    keypoints: list = field(default_factory=list)
 
     def __len__(self) -> int:
         return len(self.images)

@@ -145,6 +145,25 @@ def read_segmentation(path: Path, where: str, shape: tuple) -> np.ndarray:
     return np.ascontiguousarray(seg)
 
 
+def read_keypoints(path: Path, where: str, shape: tuple) -> np.ndarray:
+    """Read sparse depth as (K, 4) float32: u, v (pixels, centres at +0.5), z-depth and its
+    standard deviation (metres). Keypoints outside the (H, W) image ``shape`` or with a
+    non-positive depth or deviation are refused."""
+    raw = _load_npy(path, where, "sparse depth")
+    if raw.ndim != 2 or raw.shape[1] != 4 or not np.issubdtype(raw.dtype, np.floating):
+        raise DatasetError(f"{where}: sparse depth {path} has shape {raw.shape} {raw.dtype}; "
+                           "expected (K, 4) floats: u, v, z-depth, sigma")
+    keys = raw.astype(np.float32)
+    h, w = shape
+    bad = ~np.isfinite(keys).all(1) | (keys[:, 0] < 0) | (keys[:, 0] > w) | (keys[:, 1] < 0) \
+        | (keys[:, 1] > h) | (keys[:, 2] <= 0) | (keys[:, 3] <= 0)
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        raise DatasetError(f"{where}: sparse depth {path}: row {k} {keys[k].tolist()} is not a "
+                           f"keypoint inside the {w}x{h} image with positive depth and sigma")
+    return keys
+
+
 class Undistorter:
     """Remap tables that undistort images of one camera while keeping the same K.
 
@@ -164,6 +183,7 @@ class Undistorter:
                       [0.0, 0.0, 1.0]])
         size = (intr.width, intr.height)
         coeffs = np.asarray(intr.coeffs, dtype=np.float64)
+        self.k, self.coeffs, self.model = k, coeffs, intr.model
         if intr.model == "OPENCV_FISHEYE":
             self.map_x, self.map_y = cv2.fisheye.initUndistortRectifyMap(
                 k, coeffs, np.eye(3), k, size, cv2.CV_32FC1)
@@ -188,6 +208,18 @@ class Undistorter:
             border = tuple(float(b) for b in border) + (0.0,) * (4 - img.shape[2])
         return cv2.remap(img, self.map_x, self.map_y, cv2.INTER_LINEAR,
                          borderMode=cv2.BORDER_CONSTANT, borderValue=border)
+
+    def points(self, uv: np.ndarray) -> np.ndarray:
+        """(K, 2) pixel coordinates (centres at +0.5) in the distorted image -> the same points
+        in the undistorted image (same K)."""
+        if not len(uv):
+            return np.asarray(uv, dtype=np.float32).reshape(0, 2)
+        src = (np.asarray(uv, dtype=np.float64) - 0.5).reshape(-1, 1, 2)
+        if self.model == "OPENCV_FISHEYE":
+            out = cv2.fisheye.undistortPoints(src, self.k, self.coeffs, P=self.k)
+        else:
+            out = cv2.undistortPoints(src, self.k, self.coeffs, P=self.k)
+        return (out.reshape(-1, 2) + 0.5).astype(np.float32)
 
     def nearest(self, arr: np.ndarray, fill) -> np.ndarray:
         """Nearest-neighbour remap of an (H, W) array of any dtype; ``fill`` outside.

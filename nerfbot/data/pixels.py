@@ -77,6 +77,10 @@ class PixelBank:
         self.offsets = torch.cat([torch.zeros(1, dtype=torch.long), torch.cumsum(counts, 0)]).to(device)
         self.valid = self._valid_pixels(dataset, indices)
         """The drawable pixels when some frame has a mask, else None (every pixel)."""
+        self.keypoints: Optional[torch.Tensor] = None
+        """(K, 4) float32 sparse depth of the training frames (u, v, z, sigma), loaded by
+        :meth:`load_keypoints`; :attr:`keypoint_slots` (K,) their frame slots."""
+        self.keypoint_slots: Optional[torch.Tensor] = None
         self.depths: Optional[torch.Tensor] = None
         """(P,) float32 z-depth of every pixel (NaN: unknown, outside the bounds or masked out),
         loaded by :meth:`load_depths` for depth supervision."""
@@ -129,6 +133,36 @@ class PixelBank:
             d[~depth_valid_mask(self._dataset, i)] = np.nan
             maps.append(d.reshape(-1))
         self.depths = torch.from_numpy(np.concatenate(maps)).to(self.device)
+
+    def load_keypoints(self) -> int:
+        """Keep the training frames' sparse depth (:attr:`Dataset.keypoints`) for
+        :meth:`sample_keypoints`; returns their count. ValueError when no training frame has
+        any."""
+        rows, slots = [], []
+        for slot, i in enumerate(self._indices):
+            keys = self._dataset.keypoints[i] if i < len(self._dataset.keypoints) else None
+            if keys is not None and len(keys):
+                rows.append(np.asarray(keys, dtype=np.float32))
+                slots.append(np.full(len(keys), slot, dtype=np.int64))
+        if not rows:
+            raise ValueError(f"{self._dataset.root}: sparse depth supervision needs keypoints "
+                             "(frames[].sparse_depth_file_path, written by nerfbot colmap) in "
+                             "the training frames; none has any")
+        self.keypoints = torch.from_numpy(np.concatenate(rows)).to(self.device)
+        self.keypoint_slots = torch.from_numpy(np.concatenate(slots)).to(self.device)
+        return len(self.keypoints)
+
+    def sample_keypoints(self, n: int, generator: torch.Generator
+                         ) -> tuple[Rays, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``n`` random keypoints (:meth:`load_keypoints` first): rays through them (n,), the
+        keypoints' distances along those rays and their standard deviations (n,) metres, and
+        their frame slots (n,)."""
+        pick = torch.randint(len(self.keypoints), (n,), generator=generator).to(self.device)
+        keys, slot = self.keypoints[pick], self.keypoint_slots[pick]
+        cam = self.cameras
+        rays = pixel_rays(cam.c2w[slot], cam.fx[slot], cam.fy[slot], cam.cx[slot], cam.cy[slot],
+                          keys[:, 0], keys[:, 1])
+        return rays, keys[:, 2] / rays.z_per_t, keys[:, 3] / rays.z_per_t, slot
 
     def sample(self, n: int, generator: torch.Generator, supersample: int = 1
                ) -> tuple[Rays, torch.Tensor, torch.Tensor]:

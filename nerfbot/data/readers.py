@@ -7,6 +7,8 @@ Formats:
 - **Blender synthetic / D-NeRF**: a folder with ``transforms_train.json`` (and
   ``transforms_val.json``, ``transforms_test.json`` when present; a folder with only some of
   them is read too), or one of those files given directly. See :mod:`nerfbot.data.blender`.
+- **COLMAP**: a project folder (``images/`` and ``sparse/0/``) or a model folder (``cameras``,
+  ``images``, ``points3D`` as ``.bin`` or ``.txt``). See :mod:`nerfbot.data.colmap`.
 
 A folder holding both ``transforms.json`` and Blender split files is read as nerfstudio.
 
@@ -35,9 +37,10 @@ from tqdm.auto import tqdm
 
 from nerfbot.data.blender import parse_blender
 from nerfbot.data.bounds import as_aabb, choose_space, estimate_bounds_with_rule, pad_bounds
+from nerfbot.data.colmap import find_colmap_model, parse_colmap
 from nerfbot.data.dataset import Dataset
 from nerfbot.data.errors import DatasetError
-from nerfbot.data.images import (composite, read_depth, read_image, read_mask,
+from nerfbot.data.images import (composite, read_depth, read_image, read_keypoints, read_mask,
                                  read_segmentation, undistorter)
 from nerfbot.data.intrinsics import Intrinsics, resolve_intrinsics
 from nerfbot.data.nerfstudio import parse_nerfstudio
@@ -70,6 +73,7 @@ class _Frame:
     mask: Optional[np.ndarray]
     seg: Optional[np.ndarray]
     sensor_depth: Optional[np.ndarray] = None
+    keypoints: Optional[np.ndarray] = None
     opaque_alpha: bool = False
     """The file had an alpha channel that is 255 everywhere (read as an opaque image)."""
 
@@ -102,7 +106,9 @@ def default_splits(n: int) -> dict[str, list[int]]:
     return {"train": [i for i in range(n) if i % TEST_EVERY], "test": test}
 
 
-def _parse(path: Path) -> ParsedDataset:
+def parse_dataset(path: Union[str, os.PathLike]) -> ParsedDataset:
+    """Detect a dataset's format and validate its description (no image is read)."""
+    path = Path(path)
     if not path.exists():
         raise DatasetError(f"{path}: dataset not found (no such folder or JSON file)")
     if path.is_dir():
@@ -110,8 +116,12 @@ def _parse(path: Path) -> ParsedDataset:
             return parse_nerfstudio(path / "transforms.json")
         if any((path / f"transforms_{s}.json").is_file() for s in ("train", "val", "test")):
             return parse_blender(path)
-        raise DatasetError(f"{path}: not a dataset folder: no transforms.json (nerfstudio) or "
-                           "transforms_{train,val,test}.json (Blender / D-NeRF) in it")
+        found = find_colmap_model(path)
+        if found is not None:
+            return parse_colmap(*found)
+        raise DatasetError(f"{path}: not a dataset folder: no transforms.json (nerfstudio), "
+                           "transforms_{train,val,test}.json (Blender / D-NeRF) or COLMAP model "
+                           "(sparse/0/cameras.bin with images/) in it")
     if path.suffix.lower() != ".json":
         raise DatasetError(f"{path}: expected a dataset folder or a transforms .json file")
     if _BLENDER_JSON.fullmatch(path.name):
@@ -172,6 +182,10 @@ def _load_frame(spec: FrameSpec, background: tuple) -> _Frame:
     if spec.sensor_depth_path is not None:
         sensor = read_depth(spec.sensor_depth_path, f"{spec.where}.sensor_depth_file_path", shape,
                             spec.depth_scale)
+    keypoints = None
+    if spec.sparse_depth_path is not None:
+        keypoints = read_keypoints(spec.sparse_depth_path, f"{spec.where}.sparse_depth_file_path",
+                                   shape)
     if spec.mask_path is not None:
         mask = read_mask(spec.mask_path, f"{spec.where}.mask_path", shape)
     if spec.segmentation_path is not None:
@@ -189,13 +203,18 @@ def _load_frame(spec: FrameSpec, background: tuple) -> _Frame:
             depth = u.nearest(depth, np.nan)
         if sensor is not None:
             sensor = u.nearest(sensor, np.nan)
+        if keypoints is not None:
+            keypoints = keypoints.copy()
+            keypoints[:, :2] = u.points(keypoints[:, :2])
+            inside = ((keypoints[:, :2] >= 0) & (keypoints[:, :2] <= [width, height])).all(1)
+            keypoints = keypoints[inside]
         if seg is not None:
             seg = u.nearest(seg, -1)
         if mask is not None:
             mask = u.nearest(mask, False) & u.valid
         elif not u.valid.all():
             mask = u.valid.copy()
-    return _Frame(rgb, alpha, intr, depth, mask, seg, sensor, opaque_alpha)
+    return _Frame(rgb, alpha, intr, depth, mask, seg, sensor, keypoints, opaque_alpha)
 
 
 def _load_frames(parsed: ParsedDataset, background: tuple) -> list[_Frame]:
@@ -333,7 +352,7 @@ def load_dataset(path: Union[str, os.PathLike], *, aabb=None, background=None) -
         ValueError: an invalid ``aabb`` or ``background`` argument.
     """
     bg = parse_background(background)
-    parsed = _parse(Path(path))
+    parsed = parse_dataset(path)
     try:
         frames = _load_frames(parsed, bg if bg is not None else WHITE)
     finally:
@@ -390,6 +409,7 @@ def load_dataset(path: Union[str, os.PathLike], *, aabb=None, background=None) -
         masks=[f.mask for f in frames],
         segmentations=[f.seg for f in frames],
         sensor_depths=[f.sensor_depth for f in frames],
+        keypoints=[f.keypoints for f in frames],
         times=None if times is None else np.asarray(times, dtype=np.float32),
         joints=joints,
         splits=splits,

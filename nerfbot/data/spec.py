@@ -49,7 +49,8 @@ class FrameSpec:
             overridden by per-frame ones.
         per_frame_intrinsics: the frame carries its own focal length or size.
         group: the JSON file the frame's global intrinsics come from.
-        depth_path, mask_path, segmentation_path, sensor_depth_path: resolved files or None.
+        depth_path, mask_path, segmentation_path, sensor_depth_path, sparse_depth_path:
+            resolved files or None.
         depth_field: the JSON field that named the depth file (for messages).
         time: float in [0, 1] or None.
         joints: joint name -> position (radians or metres), or None.
@@ -68,6 +69,7 @@ class FrameSpec:
     mask_path: Optional[Path] = None
     segmentation_path: Optional[Path] = None
     sensor_depth_path: Optional[Path] = None
+    sparse_depth_path: Optional[Path] = None
     time: Optional[float] = None
     joints: Optional[dict] = None
     depth_scale: float = 1e-3
@@ -79,7 +81,7 @@ class ParsedDataset:
 
     Attributes:
         root: the dataset folder; every file path lies inside it.
-        format: "nerfstudio", "blender" or "dnerf".
+        format: "nerfstudio", "blender", "dnerf" or "colmap".
         frames: the frames in output order.
         splits: split name -> frame indices, or None to apply the default rule.
         manifest: the top-level ``scene`` object, or None.
@@ -235,7 +237,8 @@ def parse_frame(frame: Any, i: int, json_path: Path, root: Path, global_camera: 
 
     Reads the fields shared by all formats: ``file_path``, ``transform_matrix``, per-frame
     intrinsics, ``depth_file_path`` / ``depth_path``, ``mask_path``, ``segmentation_path``,
-    ``sensor_depth_file_path``, ``time`` and ``joints``. Files named by the frame must exist inside ``root``.
+    ``sensor_depth_file_path``, ``sparse_depth_file_path``, ``time`` and ``joints``. Files named
+    by the frame must exist inside ``root``.
     """
     where = f"{json_path}: frames[{i}]"
     if not isinstance(frame, dict):
@@ -268,6 +271,10 @@ def parse_frame(frame: Any, i: int, json_path: Path, root: Path, global_camera: 
     if frame.get("sensor_depth_file_path") is not None:
         spec.sensor_depth_path = existing_file(
             root, frame["sensor_depth_file_path"], f"{where}.sensor_depth_file_path", "depth")
+    if frame.get("sparse_depth_file_path") is not None:
+        spec.sparse_depth_path = existing_file(
+            root, frame["sparse_depth_file_path"], f"{where}.sparse_depth_file_path",
+            "sparse depth")
     if "time" in frame:
         spec.time = time_value(frame["time"], f"{where}.time")
     if "joints" in frame:

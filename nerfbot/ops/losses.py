@@ -42,3 +42,48 @@ def distortion_loss(weights: torch.Tensor, t_starts: torch.Tensor, t_ends: torch
     bi = 2.0 * w * (mid * w_before - wm_before)
     uni = w ** 2 * width / 3.0
     return ((bi + uni).sum() / max(n_rays, 1)).to(work_dtype(weights))
+
+
+#: Floor of a sample's weight inside the logarithm of :func:`keypoint_depth_loss`: a ray whose
+#: weights are all zero (empty space so far) still has a finite loss and gradient.
+KEYPOINT_WEIGHT_FLOOR = 1e-5
+
+
+def keypoint_depth_loss(weights: torch.Tensor, t_starts: torch.Tensor, t_ends: torch.Tensor,
+                        ray_indices: torch.Tensor, target_t: torch.Tensor,
+                        sigma_t: torch.Tensor) -> torch.Tensor:
+    """DS-NeRF's depth loss: the ray-termination distribution pushed toward a narrow Gaussian at
+    each keypoint's distance, mean over the rays with a finite target.
+
+    For a ray with weights w_k on intervals of length d_k and midpoints t_k, keypoint distance D
+    and width sigma (Deng et al. 2022, eq. 7):
+
+        L = - sum_k log(w_k + floor) exp(-(t_k - D)^2 / (2 sigma^2)) d_k
+
+    Minimising it raises the weight where the Gaussian sits (the cross-entropy of the target
+    distribution against the rendered one, up to a constant); a ray without samples contributes
+    0, zero weights give log(floor) (:data:`KEYPOINT_WEIGHT_FLOOR`), never NaN.
+
+    Args:
+        weights: (M,) rendering weights; t_starts, t_ends: (M,) metres; ray_indices: (M,)
+            sorted, in [0, R).
+        target_t: (R,) keypoint distance along each ray, metres (NaN: no keypoint).
+        sigma_t: (R,) Gaussian widths, metres (> 0 where target_t is finite).
+    Returns:
+        scalar, float32 at least (0 when no ray has a keypoint, still connected to ``weights``).
+    """
+    valid = torch.isfinite(target_t) & (sigma_t > 0)
+    work = torch.promote_types(weights.dtype, torch.float32)
+    if not bool(valid.any()) or weights.numel() == 0:
+        return weights.to(work).sum() * 0.0
+    w = weights.to(work)
+    mid = 0.5 * (t_starts + t_ends).to(work)
+    width = (t_ends - t_starts).to(work).clamp_min(0.0)
+    target = torch.where(valid, target_t, torch.zeros_like(target_t)).to(work)[ray_indices]
+    sigma = torch.where(valid, sigma_t, torch.ones_like(sigma_t)).to(work)[ray_indices]
+    gauss = torch.exp(-0.5 * ((mid - target) / sigma) ** 2)
+    per_sample = -torch.log(w + KEYPOINT_WEIGHT_FLOOR) * gauss * width
+    per_sample = torch.where(valid[ray_indices], per_sample, torch.zeros_like(per_sample))
+    per_ray = torch.zeros(len(target_t), dtype=work, device=w.device).index_add(
+        0, ray_indices, per_sample)
+    return per_ray[valid].mean()

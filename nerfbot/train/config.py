@@ -41,9 +41,15 @@ class TrainConfig:
     eval_at_steps: tuple = ()
     """Steps at which to record test PSNR."""
     depth_weight: float = 0.0
-    """Depth supervision (as DS-NeRF, for RGB-D captures): weight of the L1 error of the rendered
+    """Dense depth supervision (for RGB-D captures): weight of the L1 error of the rendered
     expected z-depth against the dataset's depth maps, in units of the scene cube's diagonal,
     on training pixels whose depth is finite and inside the bounds. 0 = RGB only."""
+    sparse_depth_weight: float = 0.0
+    """DS-NeRF's sparse depth supervision: weight of
+    :func:`~nerfbot.ops.losses.keypoint_depth_loss` on the training frames' keypoints
+    (``Dataset.keypoints``, from structure from motion). 0 = off."""
+    sparse_depth_rays: int = 256
+    """Keypoint rays rendered per step for the sparse depth loss."""
     device: str = "cpu"
     """torch device; the fast kernels are CPU kernels, other devices use the torch twins
     (``NERFBOT_KERNELS=torch`` forces the twins on the CPU too: :mod:`nerfbot.kernels`)."""
@@ -67,6 +73,13 @@ class TrainConfig:
             raise ValueError(f"lr must be positive and finite, got {self.lr}")
         if not 0.0 <= self.depth_weight < math.inf:
             raise ValueError(f"depth_weight must be >= 0 and finite, got {self.depth_weight}")
+        if not 0.0 <= self.sparse_depth_weight < math.inf:
+            raise ValueError(f"sparse_depth_weight must be >= 0 and finite, got "
+                             f"{self.sparse_depth_weight}")
+        if isinstance(self.sparse_depth_rays, bool) or not isinstance(self.sparse_depth_rays, int) \
+                or self.sparse_depth_rays < 1:
+            raise ValueError(f"sparse_depth_rays must be an integer >= 1, got "
+                             f"{self.sparse_depth_rays!r}")
         if not self.checkpoint_every_seconds >= 0:
             raise ValueError(f"checkpoint_every_seconds must be >= 0, got "
                              f"{self.checkpoint_every_seconds}")

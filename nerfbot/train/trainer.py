@@ -22,6 +22,7 @@ from nerfbot.data.run_dataset import run_data_fields
 from nerfbot.data.writers import write_json_atomic
 from nerfbot.methods import get_method
 from nerfbot.models.base import Model, pixel_mean
+from nerfbot.ops.losses import keypoint_depth_loss
 from nerfbot.ops.rendering import RenderOutput
 from nerfbot.ops.schedules import learning_rate
 from nerfbot.train.checkpoints import (CHECKPOINT, RESUME_REQUIRED, CheckpointError,
@@ -97,6 +98,10 @@ class Trainer:
         self.model.init_mean_color(self.bank.mean_color())
         if config.depth_weight > 0:
             self.bank.load_depths()
+        if config.sparse_depth_weight > 0:
+            count = self.bank.load_keypoints()
+            log.info("sparse depth supervision: %d keypoints, %d rays per step", count,
+                     config.sparse_depth_rays)
         aabb = self.model.aabb
         self.depth_scale = float((aabb[1] - aabb[0]).max()) * math.sqrt(3.0)
         self.generator = torch.Generator().manual_seed(config.seed)
@@ -235,6 +240,16 @@ class Trainer:
             return z.sum() * 0.0
         return (z[valid] - gt[valid]).abs().mean() / self.depth_scale
 
+    def _sparse_depth_loss(self) -> torch.Tensor:
+        """DS-NeRF's loss (:func:`~nerfbot.ops.losses.keypoint_depth_loss`) on
+        ``sparse_depth_rays`` rays through random training keypoints."""
+        rays, target_t, sigma_t, slot = self.bank.sample_keypoints(
+            self.config.sparse_depth_rays, self.generator)
+        cond = None if self.bank.conds is None else self.bank.conds[slot]
+        out = self.model.render_rays(rays, self.generator, cond)
+        return keypoint_depth_loss(out.weights, out.t_starts, out.t_ends, out.ray_indices,
+                                   target_t, sigma_t)
+
     def train(self, on_step: Optional[Callable[["Trainer"], None]] = None) -> dict:
         """Run until a budget is spent. ``on_step(trainer)`` is called after every step (tests
         use it to simulate interruptions). On KeyboardInterrupt a checkpoint is written first."""
@@ -267,6 +282,8 @@ class Trainer:
                     self.model, self.bank, self.n_rays, self.generator, progress)
                 if c.depth_weight > 0:
                     loss = loss + c.depth_weight * self._depth_loss(out, supersample)
+                if c.sparse_depth_weight > 0:
+                    loss = loss + c.sparse_depth_weight * self._sparse_depth_loss()
                 self.optimizer.zero_grad(set_to_none=True)
                 if not torch.isfinite(loss):
                     raise FloatingPointError(

@@ -1,0 +1,354 @@
+"""Structure from motion with pycolmap: SIFT features, exhaustive or sequential matching,
+incremental mapping, then a refinement that COLMAP's defaults leave out.
+
+COLMAP's mapper keeps observations up to 4 px from their projection and bundle-adjusts with a
+squared loss, thresholds chosen for photographs thousands of pixels wide. On the small images a
+robot camera or a simulator gives (128-512 px), those mismatches bias the poses by a degree or
+more. :func:`refine_reconstruction` drops observations beyond ``max_reproj_error_px`` and
+re-adjusts with a Cauchy loss until the set is stable (measured in BENCHMARKS, "Poses from
+images"); with known intrinsics they stay fixed throughout.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional, Sequence
+
+import pycolmap
+from tqdm.auto import tqdm
+
+from nerfbot.data.colmap import cam_from_world_from_c2w, require_pycolmap
+
+log = logging.getLogger(__name__)
+
+MATCHERS = ("exhaustive", "sequential")
+#: Observations seen under less than this triangulation angle (degrees) fix no depth.
+MIN_TRIANGULATION_ANGLE_DEG = 1.5
+#: An image keeps its pose only while this many of its observations survive refinement
+#: (registration itself asks 30 inliers; the refinement's tighter threshold leaves the images
+#: of correct poses with 30 or more on the benchmark scenes).
+MIN_IMAGE_POINTS = 15
+
+
+@dataclass(frozen=True)
+class CameraPrior:
+    """Intrinsics shared by every image, in COLMAP's model and parameter order.
+
+    Attributes:
+        model: "PINHOLE" (fx, fy, cx, cy) or "OPENCV" (fx, fy, cx, cy, k1, k2, p1, p2).
+        params: the model's parameters, pixels (principal point with pixel centres at +0.5).
+        fixed: keep them fixed (known calibration) rather than refine them.
+    """
+
+    model: str
+    params: tuple
+    fixed: bool = True
+
+
+@dataclass
+class SfmOptions:
+    """Choices of :func:`run_sfm`.
+
+    Attributes:
+        matcher: "exhaustive" (every pair; best up to a few hundred images) or "sequential"
+            (each image with its ``sequential_overlap`` successors, for video-like captures).
+        max_reproj_error_px: refinement drops observations farther than this from their
+            projection, pixels.
+        refine_rounds: filter + bundle-adjustment rounds after mapping (0 = COLMAP's result).
+        seed: pycolmap's random seed (RANSAC, mapper), for repeatable runs.
+        threads: worker threads (-1 = all cores).
+        sequential_overlap: successors matched by the sequential matcher.
+    """
+
+    matcher: str = "exhaustive"
+    max_reproj_error_px: float = 1.0
+    refine_rounds: int = 3
+    seed: int = 0
+    threads: int = -1
+    sequential_overlap: int = 10
+
+    def check(self) -> None:
+        if self.matcher not in MATCHERS:
+            raise ValueError(f"matcher: expected one of {', '.join(MATCHERS)}, got "
+                             f"{self.matcher!r}")
+        if not self.max_reproj_error_px > 0:
+            raise ValueError(f"max_reproj_error_px: must be > 0, got {self.max_reproj_error_px}")
+        if self.refine_rounds < 0:
+            raise ValueError(f"refine_rounds: must be >= 0, got {self.refine_rounds}")
+
+
+@dataclass
+class SfmResult:
+    """A reconstruction and what it took.
+
+    Attributes:
+        reconstruction: the largest model pycolmap found (COLMAP's frame and scale).
+        registered: names of the images with a pose, sorted.
+        unregistered: names of the images left out.
+        seconds: phase -> wall-clock seconds ("features", "matching", "mapping", "refinement",
+            "total").
+        models: how many separate models the mapper produced (1 when every registered image
+            connects).
+        deregistered: images the mapper posed but the refinement removed (too few surviving
+            observations).
+    """
+
+    reconstruction: "pycolmap.Reconstruction"
+    registered: list[str]
+    unregistered: list[str]
+    seconds: dict = field(default_factory=dict)
+    models: int = 1
+    deregistered: list = field(default_factory=list)
+
+    def summary(self) -> dict:
+        rec = self.reconstruction
+        return {
+            "images": len(self.registered) + len(self.unregistered),
+            "registered": len(self.registered),
+            "unregistered": self.unregistered,
+            "models": self.models,
+            "deregistered": self.deregistered,
+            "points": int(rec.num_points3D()),
+            "mean_track_length": float(rec.compute_mean_track_length()),
+            "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()),
+            "seconds": dict(self.seconds),
+        }
+
+
+@contextlib.contextmanager
+def _quiet_colmap(level: int = 1):
+    """COLMAP logs every step at INFO to stderr; keep warnings and errors only."""
+    previous = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = level
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = previous
+
+
+def _bundle_options(refine_intrinsics: bool, threads: int) -> "pycolmap.BundleAdjustmentOptions":
+    options = pycolmap.BundleAdjustmentOptions()
+    options.refine_focal_length = refine_intrinsics
+    options.refine_extra_params = refine_intrinsics
+    options.refine_principal_point = False
+    options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    options.ceres.loss_function_scale = 1.0  # pixels
+    solver = options.ceres.solver_options
+    solver.max_num_iterations = 200
+    solver.function_tolerance = 1e-10
+    solver.gradient_tolerance = 1e-10
+    solver.parameter_tolerance = 1e-10
+    solver.num_threads = threads
+    return options
+
+
+def refine_reconstruction(rec: "pycolmap.Reconstruction", max_reproj_error_px: float,
+                          rounds: int, refine_intrinsics: bool = False,
+                          threads: int = -1) -> tuple[list[int], list[str]]:
+    """Filter observations beyond ``max_reproj_error_px`` and bundle-adjust with a Cauchy loss,
+    ``rounds`` times, in place. An image left with fewer than :data:`MIN_IMAGE_POINTS`
+    observations is deregistered: its pose rested on mismatches (a table's 180-degree symmetry
+    registers such images about 110 degrees off).
+
+    Returns:
+        (observations dropped per round, names of the images deregistered).
+    """
+    dropped, removed = [], []
+    options = _bundle_options(refine_intrinsics, threads)
+    for _ in range(rounds):
+        manager = pycolmap.ObservationManager(rec)
+        dropped.append(int(manager.filter_all_points3D(max_reproj_error_px,
+                                                       MIN_TRIANGULATION_ANGLE_DEG)))
+        weak = [im for im in rec.images.values()
+                if im.has_pose and im.num_points3D < MIN_IMAGE_POINTS]
+        for im in weak:
+            removed.append(im.name)
+            manager.deregister_frame(im.frame_id)
+        pycolmap.bundle_adjustment(rec, options)
+    return dropped, removed
+
+
+def _reader_options(camera: Optional[CameraPrior]) -> "pycolmap.ImageReaderOptions":
+    options = pycolmap.ImageReaderOptions()
+    if camera is not None:
+        options.camera_model = camera.model
+        options.camera_params = ",".join(repr(float(p)) for p in camera.params)
+    else:
+        options.camera_model = "SIMPLE_RADIAL"
+    return options
+
+
+def _features_and_matches(database: Path, image_dir: Path, names: list[str],
+                          camera: Optional[CameraPrior], options: SfmOptions, threads: int,
+                          seconds: dict, bar) -> None:
+    """SIFT features of ``names`` and their verified matches, into ``database``."""
+    t = time.perf_counter()
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = threads
+    pycolmap.extract_features(database, image_dir, image_names=names,
+                              camera_mode=pycolmap.CameraMode.SINGLE,
+                              reader_options=_reader_options(camera),
+                              extraction_options=extraction, device=pycolmap.Device.cpu)
+    seconds["features"] = time.perf_counter() - t
+    bar.set_description(f"sfm: {options.matcher} matching")
+    t = time.perf_counter()
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = threads
+    if options.matcher == "exhaustive":
+        pycolmap.match_exhaustive(database, matching_options=matching,
+                                  device=pycolmap.Device.cpu)
+    else:
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = options.sequential_overlap
+        pycolmap.match_sequential(database, matching_options=matching,
+                                  pairing_options=pairing, device=pycolmap.Device.cpu)
+    seconds["matching"] = time.perf_counter() - t
+
+
+def _prepare(image_names, work_dir, options) -> tuple[list[str], Path, SfmOptions, int]:
+    require_pycolmap()
+    options = options or SfmOptions()
+    options.check()
+    names = list(image_names)
+    if len(names) < 2:
+        raise ValueError(f"structure from motion needs at least 2 images, got {len(names)}")
+    work_dir = Path(work_dir)
+    work_dir.mkdir(parents=True, exist_ok=True)
+    threads = options.threads if options.threads > 0 else (os.cpu_count() or 1)
+    pycolmap.set_random_seed(options.seed)
+    return names, work_dir, options, threads
+
+
+def run_sfm(image_dir: Path, image_names: Sequence[str], work_dir: Path,
+            camera: Optional[CameraPrior] = None, options: Optional[SfmOptions] = None,
+            progress: bool = True) -> SfmResult:
+    """Recover the cameras of ``image_names`` (paths relative to ``image_dir``).
+
+    Args:
+        image_dir: folder the names are relative to.
+        image_names: the images, in capture order (the sequential matcher relies on it).
+        work_dir: an empty or new folder for COLMAP's database and models.
+        camera: known shared intrinsics; None estimates one shared SIMPLE_RADIAL camera (focal
+            from EXIF when present, else 1.2 x the longer side, then refined).
+        options: see :class:`SfmOptions`.
+        progress: show a progress bar.
+
+    Raises:
+        RuntimeError: wrong pycolmap release, or no model could be built (too few matches).
+    """
+    names, work_dir, options, threads = _prepare(image_names, work_dir, options)
+    database = work_dir / "database.db"
+    models_dir = work_dir / "mapper"
+    models_dir.mkdir(exist_ok=True)
+    seconds: dict[str, float] = {}
+    bar = tqdm(total=len(names), desc="sfm: features", unit="image", disable=not progress)
+    start = time.perf_counter()
+    with _quiet_colmap():
+        _features_and_matches(database, image_dir, names, camera, options, threads, seconds,
+                              bar)
+        bar.set_description("sfm: registering")
+        t = time.perf_counter()
+        mapping = pycolmap.IncrementalPipelineOptions()
+        mapping.num_threads = threads
+        mapping.random_seed = options.seed
+        known = camera is not None and camera.fixed
+        mapping.ba_refine_focal_length = not known
+        mapping.ba_refine_extra_params = not known
+        mapping.ba_refine_principal_point = False
+        mapping.mapper.abs_pose_refine_focal_length = not known
+        mapping.mapper.abs_pose_refine_extra_params = not known
+        models = pycolmap.incremental_mapping(
+            database, image_dir, models_dir, options=mapping,
+            next_image_callback=lambda: bar.update(1))
+        seconds["mapping"] = time.perf_counter() - t
+        if not models:
+            bar.close()
+            raise RuntimeError(
+                f"structure from motion found no model for {len(names)} images in {image_dir}: "
+                "too few matches (textureless or repetitive content, too little overlap, or "
+                "images too small: SIFT needs detail; try larger images or more views)")
+        rec = max(models.values(), key=lambda r: r.num_reg_images())
+
+        bar.set_description("sfm: refining")
+        t = time.perf_counter()
+        dropped, removed = refine_reconstruction(
+            rec, options.max_reproj_error_px, options.refine_rounds,
+            refine_intrinsics=not known, threads=threads)
+        seconds["refinement"] = time.perf_counter() - t
+    seconds["total"] = time.perf_counter() - start
+    registered = sorted(im.name for im in rec.images.values() if im.has_pose)
+    bar.n = len(registered)
+    bar.set_description("sfm: done")
+    bar.close()
+    log.info("sfm: %d of %d images registered, %d points, %.2f px mean reprojection error; "
+             "refinement dropped %s observations and deregistered %s", len(registered),
+             len(names), rec.num_points3D(), rec.compute_mean_reprojection_error(), dropped,
+             removed or "no image")
+    chosen = set(registered)
+    return SfmResult(reconstruction=rec, registered=registered,
+                     unregistered=[n for n in names if n not in chosen], seconds=seconds,
+                     models=len(models), deregistered=removed)
+
+
+def triangulate_known_poses(image_dir: Path, image_names: Sequence[str], work_dir: Path,
+                            camera: CameraPrior, c2w: dict, options: Optional[SfmOptions] = None,
+                            progress: bool = True) -> SfmResult:
+    """Sparse points of images whose poses are known (a simulator, a robot's kinematics):
+    features and matches as :func:`run_sfm`, then triangulation with the poses and intrinsics
+    held fixed, and the same outlier filter (points only are re-adjusted).
+
+    Args:
+        camera: the images' shared intrinsics (kept fixed).
+        c2w: image name -> (4, 4) OpenGL camera-to-world pose, metres.
+    """
+    names, work_dir, options, threads = _prepare(image_names, work_dir, options)
+    database = work_dir / "database.db"
+    seconds: dict[str, float] = {}
+    bar = tqdm(total=len(names), desc="sfm: features", unit="image", disable=not progress)
+    start = time.perf_counter()
+    with _quiet_colmap():
+        _features_and_matches(database, image_dir, names, camera, options, threads, seconds,
+                              bar)
+        bar.set_description("sfm: triangulating")
+        t = time.perf_counter()
+        db = pycolmap.Database.open(str(database))
+        try:
+            cameras, images = db.read_all_cameras(), db.read_all_images()
+        finally:
+            db.close()
+        rec = pycolmap.Reconstruction()
+        for cam in cameras:
+            rec.add_camera_with_trivial_rig(cam)
+        for image in images:
+            pose = pycolmap.Rigid3d(cam_from_world_from_c2w(c2w[image.name]))
+            rec.add_image_with_trivial_frame(
+                pycolmap.Image(name=image.name, camera_id=image.camera_id,
+                               image_id=image.image_id), pose)
+        mapping = pycolmap.IncrementalPipelineOptions()
+        mapping.num_threads = threads
+        rec = pycolmap.triangulate_points(rec, database, image_dir, work_dir / "triangulated",
+                                          options=mapping)
+        seconds["triangulation"] = time.perf_counter() - t
+        t = time.perf_counter()
+        dropped = []
+        points_only = _bundle_options(False, threads)
+        points_only.refine_rig_from_world = False
+        for _ in range(options.refine_rounds):
+            dropped.append(int(pycolmap.ObservationManager(rec).filter_all_points3D(
+                options.max_reproj_error_px, MIN_TRIANGULATION_ANGLE_DEG)))
+            pycolmap.bundle_adjustment(rec, points_only)
+        seconds["refinement"] = time.perf_counter() - t
+    seconds["total"] = time.perf_counter() - start
+    bar.n = len(names)
+    bar.set_description("sfm: done")
+    bar.close()
+    log.info("sfm: %d points triangulated from %d posed images, %.2f px mean reprojection "
+             "error; refinement dropped %s observations", rec.num_points3D(), len(names),
+             rec.compute_mean_reprojection_error(), dropped)
+    return SfmResult(reconstruction=rec, registered=sorted(names), unregistered=[],
+                     seconds=seconds, models=1)
