@@ -140,8 +140,11 @@ def test_colmap_reader_names_what_is_wrong(tiny_capture, tmp_path):
         load_dataset(project)
 
 
-def test_pycolmap_release_is_the_supported_one():
-    require_pycolmap()  # the installed release must be the pinned one
+def test_pycolmap_release_is_checked(monkeypatch):
+    require_pycolmap()  # the installed release is the pinned one
+    monkeypatch.setattr(pycolmap, "__version__", "3.11.1")
+    with pytest.raises(RuntimeError, match=r"pycolmap 4\.2\.x, found 3\.11\.1.*pip install"):
+        require_pycolmap()
 
 
 @pytest.fixture(scope="module")

@@ -29,6 +29,7 @@ QUICKSTART = NOTEBOOKS / "01_quickstart.ipynb"
 GLASS = NOTEBOOKS / "02_glass_grasping.ipynb"
 ARTICULATED = NOTEBOOKS / "03_articulated.ipynb"
 VARIANTS = NOTEBOOKS / "04_variants.ipynb"
+POSES = NOTEBOOKS / "06_poses_and_few_views.ipynb"
 
 STEPS = 60
 SAMPLES = 1 << 15  # per training step; the tutorials' default (2^17) is the whole 32x32 capture
@@ -104,7 +105,18 @@ def articulated(tmp_path_factory):
         return _execute(ARTICULATED, tmp_path_factory.mktemp("nb_articulated"))
 
 
-@pytest.mark.parametrize("path", [QUICKSTART, GLASS, ARTICULATED, VARIANTS], ids=lambda p: p.stem)
+@pytest.fixture(scope="module")
+def poses(tmp_path_factory):
+    """The poses tutorial at the tiny budget: SfM on 12 + 4 views at 192 px, fields at 48 px."""
+    with pytest.MonkeyPatch.context() as mp:
+        for key, value in {"NERFBOT_NB_SFM_SIZE": "192", "NERFBOT_NB_DOWNSCALE": "4",
+                           "NERFBOT_NB_FEW": "3"}.items():
+            mp.setenv(key, value)
+        return _execute(POSES, tmp_path_factory.mktemp("nb_poses"))
+
+
+@pytest.mark.parametrize("path", [QUICKSTART, GLASS, ARTICULATED, VARIANTS, POSES],
+                         ids=lambda p: p.stem)
 def test_stored_without_outputs(path):
     nb = nbformat.read(path, as_version=4)
     nbformat.validate(nb)
@@ -221,3 +233,16 @@ def test_variants_tutorial_measures_every_variant(variants):
     for src, baked in (("fastnerf", "fastnerf_cache"), ("plenoctree", "plenoctree_octree")):
         assert methods[baked]["psnr"] > methods[src]["psnr"] - 1.5, (src, baked)
     assert r["cache_mb"] > 0 and r["octree_mb"] > 0
+
+
+def test_poses_tutorial_recovers_the_cameras_and_trains_on_them(poses):
+    nb, r = poses
+    assert len(_figures(nb)) >= 3   # views, pose errors and cameras, few-view renders
+    assert r["registered"] >= 0.8 * r["images"]
+    assert r["rotation_deg_median"] < 1.0 and r["translation_percent_median"] < 2.0
+    assert r["psnr_recovered_poses"] >= POSES_MIN_PSNR_DB
+    assert r["psnr_true_poses"] - r["psnr_recovered_poses"] < POSES_MAX_GAP_DB
+    assert r["few_views"] == 3 and r["few_points"] > 10
+    for key in ("few_psnr_rgb", "few_psnr_sparse_depth", "few_depth_mae_rgb_m",
+                "few_depth_mae_sparse_depth_m"):
+        assert math.isfinite(r[key]), key

@@ -134,7 +134,9 @@ def test_keypoint_rays_reach_the_true_surface(tiny_capture, tmp_path):
     bank = PixelBank(ds, ds.indices("train"))
     count = bank.load_keypoints()
     assert count == sum(len(ds.keypoints[i]) for i in ds.indices("train"))
-    rays, target_t, sigma_t, slot = bank.sample_keypoints(64, torch.Generator().manual_seed(0))
+    rays, colours, slot, target_t, sigma_t = bank.sample_keypoints(
+        64, torch.Generator().manual_seed(0))
+    assert colours.shape == (64, 3)
     points = rays.origins + target_t[:, None] * rays.directions
     frames = bank.frames[slot]
     for k in range(64):
@@ -145,7 +147,14 @@ def test_keypoint_rays_reach_the_true_surface(tiny_capture, tmp_path):
         u, v = fx * p[0] / -p[2] + cx, -fy * p[1] / -p[2] + cy
         assert abs(u - round(u - 0.5) - 0.5) < 1e-3 and abs(v - round(v - 0.5) - 0.5) < 1e-3
         assert truth.depths[i][int(v), int(u)] == pytest.approx(-p[2], rel=1e-4)
+        np.testing.assert_allclose(colours[k].numpy() * 255, truth.images[i][int(v), int(u)],
+                                   atol=1e-3)
     assert torch.all(sigma_t >= 0.01 - 1e-6)
+    # 2 x 2 rays per keypoint pixel: four rays, each with the keypoint's distance along it
+    rays, colours, slot, target_t, _ = bank.sample_keypoints(8, torch.Generator(), 2)
+    assert len(rays) == 32 and colours.shape == (8, 3) and target_t.shape == (32,)
+    z = target_t * rays.z_per_t
+    assert torch.allclose(z.reshape(8, 4), z.reshape(8, 4)[:, :1].expand(8, 4))
 
 
 def test_sparse_depth_files_are_checked(tiny_capture, tmp_path):

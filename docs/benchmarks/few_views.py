@@ -3,18 +3,18 @@
 usage: python docs/benchmarks/few_views.py WORK [--scenes tabletop,workspace:0]
                                            [--views 2,3,5,10] [--seconds 60] [--weight 0.1]
 
-For each scene: one 512 px capture with 10 training and 10 test views (hemisphere rig, seed 0).
-For each view count N, the N training views farthest apart (greedy farthest-point order of the
-camera centres, starting from view 0) make a training set:
+Few-view work poses a scene from one side, as a robot's camera does from where it stands: for
+N training views, cameras on an arc of 60 degrees of azimuth around the scene's target (the
+scene's own rig radius, 35 degrees elevation), evenly spaced; 8 test views on the same arc
+between them, at 30 and 40 degrees elevation, the same for every N. For each scene and N:
 
-1. ``nerfbot colmap SUBSET --known-poses --downscale 4``: SIFT features and matches among the N
-   training images only, points triangulated with the simulator's poses; images, depth and
-   keypoints written at 128 px. (Poses come from the simulator: the column "SfM registers"
-   says whether ``nerfbot colmap`` alone would have posed the N views, and its median rotation
-   error when it did.)
-2. ``nerfbot train --method ngp --max-seconds S`` with and without ``--sparse-depth-weight W``.
-3. ``nerfbot eval --data TESTSET --split test`` on the 10 test views (the same capture's,
-   written at 128 px the same way): PSNR, SSIM, depth MAE.
+1. ``nerfbot capture --rig explicit`` at 512 px, then ``nerfbot colmap CAPTURE --known-poses
+   --downscale 4``: SIFT features and matches among the N training images only (the test
+   images are posed by a second capture and never matched), points triangulated with the
+   simulator's poses; images, depth and keypoints written at 128 px. The column "SfM alone"
+   says whether ``nerfbot colmap`` without the poses registers the N views.
+2. ``nerfbot train --method ngp --max-seconds S``, with and without ``--sparse-depth-weight W``.
+3. ``nerfbot eval --data TESTSET --split test``: PSNR, SSIM, depth MAE on the 8 test views.
 
 Writes WORK/few_views.json, WORK/few_views.png (PSNR and depth MAE against N) and prints a
 markdown table. One thing at a time.
@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -35,7 +34,13 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from nerfbot.ops.cameras import spherical_eye  # noqa: E402
+from sims.rigs import default_rig  # noqa: E402
+
 NERFBOT = [sys.executable, "-m", "nerfbot.app.cli"]
+#: Azimuth span of the training and test cameras, degrees (SIFT matches two tabletop views 60
+#: degrees apart not at all; 30 degrees apart it does).
+ARC_DEG = 60.0
 
 
 def run(cmd: list) -> str:
@@ -44,30 +49,19 @@ def run(cmd: list) -> str:
                           text=True).stdout
 
 
-def farthest_order(centres: np.ndarray) -> list[int]:
-    """Greedy farthest-point order of camera centres (N, 3), starting from the first."""
-    order = [0]
-    dist = np.linalg.norm(centres - centres[0], axis=1)
-    while len(order) < len(centres):
-        nxt = int(np.argmax(dist))
-        order.append(nxt)
-        dist = np.minimum(dist, np.linalg.norm(centres - centres[nxt], axis=1))
-    return order
+def arc_poses(scene: str, n: int) -> dict:
+    """Explicit-rig file content: n training eyes on the arc, 8 test eyes between them."""
+    rig = default_rig(scene)
+    target = np.asarray(rig.target, dtype=float)
 
+    def eye(azimuth, elevation):
+        return spherical_eye(target, rig.radius, azimuth, elevation).tolist()
 
-def subset(capture: Path, out: Path, frames: list[dict], meta: dict) -> None:
-    """A copy of ``capture`` holding only ``frames`` (all of them training frames)."""
-    out.mkdir(parents=True)
-    for frame in frames:
-        for key in ("file_path", "depth_file_path", "segmentation_path"):
-            if key in frame:
-                (out / frame[key]).parent.mkdir(parents=True, exist_ok=True)
-                shutil.copyfile(capture / frame[key], out / frame[key])
-    small = {k: v for k, v in meta.items() if not k.endswith("_filenames") and k != "frames"}
-    small["frames"] = frames
-    small["train_filenames"] = [f["file_path"] for f in frames]
-    small["val_filenames"] = small["test_filenames"] = []
-    (out / "transforms.json").write_text(json.dumps(small, indent=2))
+    train = [{"eye": eye(-ARC_DEG / 2 + ARC_DEG * (i + 0.5) / n, 35.0),
+              "target": target.tolist()} for i in range(n)]
+    test = [{"eye": eye(a, 30.0 if k % 2 else 40.0), "target": target.tolist()}
+            for k, a in enumerate(np.linspace(-0.45 * ARC_DEG, 0.45 * ARC_DEG, 8))]
+    return {"train": train, "test": test}
 
 
 def sfm_alone(data: Path, out: Path) -> dict:
@@ -97,31 +91,39 @@ def main() -> None:
     results = {}
     for scene in args.scenes.split(","):
         tag = scene.replace(":", "_")
-        capture = args.work / f"{tag}-512px"
-        if not (capture / "transforms.json").exists():
-            run(NERFBOT + ["capture", "--scene", scene, "--size", 512, "--views", max(counts),
-                           "--test-views", 10, "--out", capture, "--no-progress"])
-        meta = json.loads((capture / "transforms.json").read_text())
-        train = [f for f in meta["frames"] if f["file_path"] in set(meta["train_filenames"])]
         testset = args.work / f"{tag}-test128"
         if not testset.exists():
+            poses = args.work / f"{tag}-test-poses.json"
+            poses.write_text(json.dumps({"train": arc_poses(scene, 8)["test"]}))
+            capture = args.work / f"{tag}-test-512px"
+            run(NERFBOT + ["capture", "--scene", scene, "--size", 512, "--rig", "explicit",
+                           "--poses", poses, "--test-views", 0, "--out", capture,
+                           "--no-progress"])
             run(NERFBOT + ["colmap", capture, "--out", testset, "--known-poses", "--downscale", 4,
                            "--no-progress"])
-        order = farthest_order(np.array([np.array(f["transform_matrix"])[:3, 3] for f in train]))
+            meta = json.loads((testset / "transforms.json").read_text())
+            meta["test_filenames"] = meta["val_filenames"] = meta.pop("train_filenames")
+            meta["train_filenames"] = []
+            (testset / "transforms.json").write_text(json.dumps(meta, indent=2))
         rows = {}
         for n in counts:
-            views = args.work / f"{tag}-{n}v-512px"
-            if not views.exists():
-                subset(capture, views, [train[i] for i in sorted(order[:n])], meta)
+            capture = args.work / f"{tag}-{n}v-512px"
+            if not (capture / "transforms.json").exists():
+                poses = args.work / f"{tag}-{n}v-poses.json"
+                poses.write_text(json.dumps({"train": arc_poses(scene, n)["train"]}))
+                run(NERFBOT + ["capture", "--scene", scene, "--size", 512, "--rig", "explicit",
+                               "--poses", poses, "--test-views", 0, "--out", capture,
+                               "--no-progress"])
             data = args.work / f"{tag}-{n}v"
             if not (data / "transforms.json").exists():
-                run(NERFBOT + ["colmap", views, "--out", data, "--known-poses", "--downscale", 4,
+                run(NERFBOT + ["colmap", capture, "--out", data, "--known-poses", "--downscale", 4,
                                "--no-progress"])
             report = json.loads((data / "sfm_report.json").read_text())
-            row = {"keypoints": int(sum(len(np.load(p)) for p in (data / "sparse_depth")
-                                        .rglob("*.npy"))) if (data / "sparse_depth").exists()
-                   else 0, "points": report["points"],
-                   "sfm_alone": sfm_alone(views, args.work / f"{tag}-{n}v-sfm")}
+            files = list((data / "sparse_depth").rglob("*.npy")) \
+                if (data / "sparse_depth").exists() else []
+            row = {"keypoints": int(sum(len(np.load(p)) for p in files)),
+                   "points": report["points"],
+                   "sfm_alone": sfm_alone(capture, args.work / f"{tag}-{n}v-sfm")}
             for name, extra in (("rgb", []), ("sparse_depth",
                                               ["--sparse-depth-weight", args.weight])):
                 if name == "sparse_depth" and not row["keypoints"]:

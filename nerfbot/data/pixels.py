@@ -152,17 +152,23 @@ class PixelBank:
         self.keypoint_slots = torch.from_numpy(np.concatenate(slots)).to(self.device)
         return len(self.keypoints)
 
-    def sample_keypoints(self, n: int, generator: torch.Generator
-                         ) -> tuple[Rays, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """``n`` random keypoints (:meth:`load_keypoints` first): rays through them (n,), the
-        keypoints' distances along those rays and their standard deviations (n,) metres, and
-        their frame slots (n,)."""
+    def sample_keypoints(self, n: int, generator: torch.Generator, supersample: int = 1
+                         ) -> tuple[Rays, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``n`` random keypoints (:meth:`load_keypoints` first), as training pixels: the pixel
+        holding each keypoint gives its rays (n * S * S, as :meth:`sample`), colour (n, 3) and
+        frame slot (n,), and every ray the keypoint's distance along it and that distance's
+        standard deviation (n * S * S,) metres (the z-depth over the ray's cosine: the rays of
+        one pixel are a fraction of a pixel apart)."""
         pick = torch.randint(len(self.keypoints), (n,), generator=generator).to(self.device)
         keys, slot = self.keypoints[pick], self.keypoint_slots[pick]
-        cam = self.cameras
-        rays = pixel_rays(cam.c2w[slot], cam.fx[slot], cam.fy[slot], cam.cx[slot], cam.cy[slot],
-                          keys[:, 0], keys[:, 1])
-        return rays, keys[:, 2] / rays.z_per_t, keys[:, 3] / rays.z_per_t, slot
+        w = self.cameras.width[slot]
+        col = keys[:, 0].long().clamp(min=0).minimum(w - 1)
+        row = keys[:, 1].long().clamp(min=0).minimum(self.cameras.height[slot] - 1)
+        p = self.offsets[slot] + row * w + col
+        rays, colours = self._pixel_rays(p, slot, generator, supersample)
+        k = supersample * supersample
+        z, sigma = keys[:, 2].repeat_interleave(k), keys[:, 3].repeat_interleave(k)
+        return rays, colours, slot, z / rays.z_per_t, sigma / rays.z_per_t
 
     def sample(self, n: int, generator: torch.Generator, supersample: int = 1
                ) -> tuple[Rays, torch.Tensor, torch.Tensor]:
@@ -179,6 +185,14 @@ class PixelBank:
                                  .to(self.device))
         self.last_pixels = p
         slot = torch.searchsorted(self.offsets[1:], p, right=True)
+        rays, colours = self._pixel_rays(p, slot, generator, supersample)
+        return rays, colours, slot
+
+    def _pixel_rays(self, p: torch.Tensor, slot: torch.Tensor, generator: torch.Generator,
+                    supersample: int) -> tuple[Rays, torch.Tensor]:
+        """Rays (n * S * S,) through pixels ``p`` (n,) of frame slots ``slot``, and their
+        colours (n, 3) float32 in [0, 1] (see :meth:`sample`)."""
+        n = len(p)
         local = p - self.offsets[slot]
         w = self.cameras.width[slot]
         v, u = local // w, local % w
@@ -196,7 +210,7 @@ class PixelBank:
         rays = pixel_rays(cam.c2w[ray_slot], cam.fx[ray_slot], cam.fy[ray_slot],
                           cam.cx[ray_slot], cam.cy[ray_slot], px, py,
                           1.0 / supersample, 1.0 / supersample)
-        return rays, self.pixels[p].float() / 255.0, slot
+        return rays, self.pixels[p].float() / 255.0
 
 
 def depth_valid_mask(dataset: Dataset, i: int) -> np.ndarray | None:

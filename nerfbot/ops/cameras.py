@@ -234,6 +234,15 @@ class Rays:
         return Rays(self.origins.to(device), self.directions.to(device), self.z_per_t.to(device),
                     None if self.radii is None else self.radii.to(device))
 
+    @staticmethod
+    def cat(bundles: list["Rays"]) -> "Rays":
+        """One bundle of the rays of ``bundles``, in order (radii kept only if all have them)."""
+        radii = [b.radii for b in bundles]
+        return Rays(torch.cat([b.origins for b in bundles]),
+                    torch.cat([b.directions for b in bundles]),
+                    torch.cat([b.z_per_t for b in bundles]),
+                    None if any(r is None for r in radii) else torch.cat(radii))
+
 
 #: mip-NeRF's cone radius in pixel widths: a disk of this radius has the variance of a pixel
 #: square (1 / 12 per axis).

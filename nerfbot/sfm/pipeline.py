@@ -331,6 +331,9 @@ def triangulate_known_poses(image_dir: Path, image_names: Sequence[str], work_di
                                image_id=image.image_id), pose)
         mapping = pycolmap.IncrementalPipelineOptions()
         mapping.num_threads = threads
+        # with the poses known, a point two views agree on is as good as a longer track (and
+        # two views may be all there is)
+        mapping.triangulation.ignore_two_view_tracks = False
         rec = pycolmap.triangulate_points(rec, database, image_dir, work_dir / "triangulated",
                                           options=mapping)
         seconds["triangulation"] = time.perf_counter() - t

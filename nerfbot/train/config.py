@@ -49,7 +49,8 @@ class TrainConfig:
     :func:`~nerfbot.ops.losses.keypoint_depth_loss` on the training frames' keypoints
     (``Dataset.keypoints``, from structure from motion). 0 = off."""
     sparse_depth_rays: int = 256
-    """Keypoint rays rendered per step for the sparse depth loss."""
+    """Keypoint pixels per step for the sparse depth loss; they replace as many random pixels
+    of the batch (their colour is trained too)."""
     device: str = "cpu"
     """torch device; the fast kernels are CPU kernels, other devices use the torch twins
     (``NERFBOT_KERNELS=torch`` forces the twins on the CPU too: :mod:`nerfbot.kernels`)."""

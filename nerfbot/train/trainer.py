@@ -22,6 +22,7 @@ from nerfbot.data.run_dataset import run_data_fields
 from nerfbot.data.writers import write_json_atomic
 from nerfbot.methods import get_method
 from nerfbot.models.base import Model, pixel_mean
+from nerfbot.ops.cameras import Rays
 from nerfbot.ops.losses import keypoint_depth_loss
 from nerfbot.ops.rendering import RenderOutput
 from nerfbot.ops.schedules import learning_rate
@@ -57,17 +58,37 @@ def warm_up_step(model: Model, bank: "PixelBank", step: int, progress: float) ->
 
 
 def batch_loss(model: Model, bank: "PixelBank", n_rays: int, generator: torch.Generator,
-               progress: float) -> tuple[torch.Tensor, RenderOutput, int]:
+               progress: float, keypoints: int = 0, sparse_depth_weight: float = 0.0
+               ) -> tuple[torch.Tensor, RenderOutput, int]:
     """The loss of a batch of about ``n_rays`` random training rays at ``progress`` of the
     budget: S x S rays per pixel (S = ``model.training_supersample(progress)``), whose
     colours the model averages before comparing them with the pixel's (a pixel's colour is the
     mean over its area, as a renderer's anti-aliasing or a camera's sensor makes it).
-    Returns the loss, the rays' render output and S."""
+
+    With ``keypoints`` > 0, that many pixels holding sparse-depth keypoints
+    (:meth:`PixelBank.sample_keypoints`) join the batch, as DS-NeRF trains: their colour
+    counts like any pixel's, and their rays add ``sparse_depth_weight`` x
+    :func:`~nerfbot.ops.losses.keypoint_depth_loss`. The pixels drawn are in
+    ``bank.last_pixels`` (the random ones; keypoint pixels are not, so dense depth supervision
+    sees only those). Returns the loss, the rays' render output (random pixels' rays first)
+    and S."""
     s = model.training_supersample(progress)
     k = s * s
-    rays, target, slot = bank.sample(max(1, n_rays // k), generator, s)
+    n_pixels = max(1, n_rays // k - keypoints)
+    rays, target, slot = bank.sample(n_pixels, generator, s)
+    depth = None
+    if keypoints:
+        krays, kcolour, kslot, kt, ksigma = bank.sample_keypoints(keypoints, generator, s)
+        rays = Rays.cat([rays, krays])
+        target, slot = torch.cat([target, kcolour]), torch.cat([slot, kslot])
+        missing = torch.full((n_pixels * k,), float("nan"), dtype=kt.dtype, device=kt.device)
+        depth = torch.cat([missing, kt]), torch.cat([torch.ones_like(missing), ksigma])
     cond = None if bank.conds is None else bank.conds[slot].repeat_interleave(k, 0)
-    return (*model.loss(rays, target, generator, cond, rays_per_pixel=k), s)
+    loss, out = model.loss(rays, target, generator, cond, rays_per_pixel=k)
+    if depth is not None:
+        loss = loss + sparse_depth_weight * keypoint_depth_loss(
+            out.weights, out.t_starts, out.t_ends, out.ray_indices, *depth)
+    return loss, out, s
 
 
 class Trainer:
@@ -234,21 +255,11 @@ class Trainer:
         rays per pixel, their mean), on its pixels with a valid depth, in cube diagonals (0 when
         none has one)."""
         gt = self.bank.depths[self.bank.last_pixels]
-        z = pixel_mean(out.z_depth, supersample ** 2)
+        z = pixel_mean(out.z_depth, supersample ** 2)[:len(gt)]  # keypoint pixels come last
         valid = torch.isfinite(gt)
         if not bool(valid.any()):
             return z.sum() * 0.0
         return (z[valid] - gt[valid]).abs().mean() / self.depth_scale
-
-    def _sparse_depth_loss(self) -> torch.Tensor:
-        """DS-NeRF's loss (:func:`~nerfbot.ops.losses.keypoint_depth_loss`) on
-        ``sparse_depth_rays`` rays through random training keypoints."""
-        rays, target_t, sigma_t, slot = self.bank.sample_keypoints(
-            self.config.sparse_depth_rays, self.generator)
-        cond = None if self.bank.conds is None else self.bank.conds[slot]
-        out = self.model.render_rays(rays, self.generator, cond)
-        return keypoint_depth_loss(out.weights, out.t_starts, out.t_ends, out.ray_indices,
-                                   target_t, sigma_t)
 
     def train(self, on_step: Optional[Callable[["Trainer"], None]] = None) -> dict:
         """Run until a budget is spent. ``on_step(trainer)`` is called after every step (tests
@@ -278,12 +289,12 @@ class Trainer:
                 for group in self.optimizer.param_groups:
                     group["lr"] = lr * group["lr_scale"]
                 self.n_rays = self.model.rays_for_next_batch(self.last_samples, self.n_rays)
+                keypoints = c.sparse_depth_rays if c.sparse_depth_weight > 0 else 0
                 loss, out, supersample = batch_loss(
-                    self.model, self.bank, self.n_rays, self.generator, progress)
+                    self.model, self.bank, self.n_rays, self.generator, progress,
+                    keypoints, c.sparse_depth_weight)
                 if c.depth_weight > 0:
                     loss = loss + c.depth_weight * self._depth_loss(out, supersample)
-                if c.sparse_depth_weight > 0:
-                    loss = loss + c.sparse_depth_weight * self._sparse_depth_loss()
                 self.optimizer.zero_grad(set_to_none=True)
                 if not torch.isfinite(loss):
                     raise FloatingPointError(
