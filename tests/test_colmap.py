@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import shutil
 
+import cv2
 import numpy as np
 import pycolmap
 import pytest
@@ -217,3 +218,17 @@ def test_images_input_needs_two_images(tmp_path):
     (tmp_path / "one.png").write_bytes(b"")
     with pytest.raises(DatasetError, match="found 1 images"):
         images_input(tmp_path)
+
+
+def test_a_failed_reconstruction_leaves_no_folder_behind(tmp_path, capsys):
+    images = tmp_path / "blank"
+    images.mkdir()
+    for i in range(3):   # nothing to match
+        cv2.imwrite(str(images / f"{i}.png"), np.full((64, 64, 3), 90 + i, np.uint8))
+    out = tmp_path / "posed"
+    assert nerfbot_main(["colmap", str(images), "--out", str(out), "--no-progress"]) == 2
+    assert "found no model" in capsys.readouterr().err
+    assert not out.exists()
+    out.mkdir()   # an empty folder the user made stays, empty
+    assert nerfbot_main(["colmap", str(images), "--out", str(out), "--no-progress"]) == 2
+    assert out.is_dir() and not any(out.iterdir())

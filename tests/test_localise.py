@@ -3,13 +3,16 @@ recovering a known perturbation of a test camera of a trained tiny capture."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
 
 from nerfbot.data import load_dataset
-from nerfbot.query.localise import (InerfConfig, inerf, interest_pixels, perturb, pose_error,
-                                    se3_exp)
+from nerfbot.eval.evaluation import evaluate
+from nerfbot.ops.lie import se3_exp
+from nerfbot.query.localise import InerfConfig, inerf, interest_pixels, perturb, pose_error
 from nerfbot.train.trainer import TrainConfig, Trainer
 
 pytestmark = pytest.mark.slow(70)
@@ -95,3 +98,18 @@ def test_inerf_recovers_a_small_perturbation(trained_tiny):
     # from 5 cm and 3 degrees; measured here 2.0 cm and 0.41 degrees (translation along the
     # view axis is the slow direction on 64x64 images)
     assert dt < 0.5 * 0.05 and dr < 0.3 * 3.0, (dt, dr)
+
+
+def test_evaluation_with_pose_refinement_recovers_a_misplaced_test_camera(trained_tiny):
+    model, ds = trained_tiny
+    c2w = ds.c2w.copy()
+    index = ds.indices("test")[0]
+    c2w[index] = perturb(ds.c2w[index], 0.02, 1.0, np.random.default_rng(3))
+    misplaced = replace(ds, c2w=c2w, splits={"train": [], "test": [index]})
+    exact = evaluate(model, replace(ds, splits={"train": [], "test": [index]}), "test")
+    plain = evaluate(model, misplaced, "test")
+    refined = evaluate(model, misplaced, "test",
+                       refine_poses=InerfConfig(iterations=100, rays=1024, lr=2e-3))
+    assert plain["psnr"] < exact["psnr"] - 1.0         # the misplaced camera costs PSNR
+    assert refined["psnr"] > plain["psnr"] + 0.5 * (exact["psnr"] - plain["psnr"])
+    assert refined["pose_refinement"]["rotation_deg_median"] > 0.2

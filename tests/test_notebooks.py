@@ -105,6 +105,14 @@ def articulated(tmp_path_factory):
         return _execute(ARTICULATED, tmp_path_factory.mktemp("nb_articulated"))
 
 
+# The poses tutorial at its tiny budget (SfM at 192 px, fields at 48 px, 60 steps): observed 16
+# of 16 views registered, 0.16 degrees and 0.10 % median errors, test PSNR 19.23 dB on the
+# recovered poses and 19.17 dB on the true ones (an untrained field scores ~11 dB); with three
+# views, sparse depth took the depth MAE from 6.1 to 3.5 cm.
+POSES_MIN_PSNR_DB = 15.0
+POSES_MAX_GAP_DB = 2.0
+
+
 @pytest.fixture(scope="module")
 def poses(tmp_path_factory):
     """The poses tutorial at the tiny budget: SfM on 12 + 4 views at 192 px, fields at 48 px."""
@@ -246,3 +254,4 @@ def test_poses_tutorial_recovers_the_cameras_and_trains_on_them(poses):
     for key in ("few_psnr_rgb", "few_psnr_sparse_depth", "few_depth_mae_rgb_m",
                 "few_depth_mae_sparse_depth_m"):
         assert math.isfinite(r[key]), key
+    assert r["few_depth_mae_sparse_depth_m"] < r["few_depth_mae_rgb_m"]

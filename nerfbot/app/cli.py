@@ -301,8 +301,12 @@ def cmd_eval(args) -> int:
     from nerfbot.models.base import num_params
 
     model, info, data, ds = _run_and_dataset(args)
+    refine = None
+    if args.refine_poses:
+        from nerfbot.query.localise import InerfConfig
+        refine = InerfConfig(iterations=100, rays=1024, lr=2e-3)
     metrics = evaluate(model, ds, args.split, downscale=args.downscale,
-                       supersample=args.supersample)
+                       supersample=args.supersample, refine_poses=refine)
     metrics.update(method=info["spec"]["method"], num_params=num_params(model),
                    train_seconds=info["train_seconds"], steps=info["step"], split=args.split,
                    data=str(data))
@@ -925,6 +929,9 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
                         "area-averaged (the multiscale protocol; default 1)")
     p.add_argument("--supersample", type=_positive_int, default=None, metavar="S",
                    help="S x S rays per pixel for colour (default: what the run was trained with)")
+    p.add_argument("--refine-poses", action="store_true",
+                   help="refine each view's pose against the field first (iNeRF, 100 steps): "
+                        "for views posed by structure from motion, whose errors are the poses'")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--depth-sweep", action="store_true",
                    help="also compare expected, median and threshold depth (and the simulated "

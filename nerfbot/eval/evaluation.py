@@ -13,7 +13,9 @@ from nerfbot.data.dataset import Dataset
 from nerfbot.data.errors import DatasetError
 from nerfbot.data.pixels import depth_valid_mask
 from nerfbot.models.base import Model
+from nerfbot.ops.cameras import Cameras
 from nerfbot.ops.metrics import depth_errors, psnr, ssim
+from nerfbot.query.localise import InerfConfig, inerf, pose_error
 from nerfbot.query.render import render_image
 
 
@@ -124,7 +126,8 @@ class _PooledPSNR:
 
 
 def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: int | None = None,
-             with_ssim: bool = True, downscale: int = 1, supersample: int | None = None) -> dict:
+             with_ssim: bool = True, downscale: int = 1, supersample: int | None = None,
+             refine_poses: InerfConfig | None = None) -> dict:
     """Render every frame of ``split`` and compare with the ground truth.
 
     Returns psnr / ssim (means over images); depth_mae_m / depth_rmse_m of the expected z-depth
@@ -157,6 +160,12 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
     psnr_objects, and blocks entirely on objects for the object depth errors; a low-resolution
     pixel is valid only when its whole block is (:func:`pixel_mask`).
 
+    ``refine_poses`` (an iNeRF setting, :func:`~nerfbot.query.localise.inerf`): each frame's
+    pose is first refined against the model from the dataset's, and the frame is scored there
+    (for views posed by structure from motion: their pose errors are then not counted as the
+    field's; BARF's protocol). ``pose_refinement`` reports how far the poses moved (medians,
+    metres and degrees).
+
     Raises:
         DatasetError: the split is missing or empty, or every pixel of its frames is masked out.
     """
@@ -164,7 +173,17 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
         raise ValueError(f"downscale must be a positive integer, got {downscale!r}")
     downscale = int(downscale)
     indices = eval_indices(dataset, split, max_images)
-    cams = dataset.cameras(indices)
+    conds = frame_conditions(dataset, dataset_conditioning(dataset))
+    c2w = dataset.c2w[indices]
+    moved = None
+    if refine_poses is not None:
+        if conds is not None:
+            raise ValueError("pose refinement is for static scenes (this dataset has time or "
+                             "joints)")
+        c2w = np.stack([inerf(model, dataset.images[i], dataset.intrinsics[i], dataset.c2w[i],
+                              refine_poses, seed=int(i)).c2w for i in indices])
+        moved = [pose_error(new, old) for new, old in zip(c2w, dataset.c2w[indices])]
+    cams = Cameras.from_numpy(c2w, dataset.intrinsics[indices], dataset.sizes[indices])
     if downscale > 1:
         cams = cams.scaled(1.0 / downscale)
     psnrs, ssims, times = [], [], []
@@ -172,7 +191,6 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
     all_med, obj_med = _DepthErrorSum(), _DepthErrorSum()
     objects = object_geom_ids(dataset)
     on_objects_psnr, non_sky_psnr = _PooledPSNR(), _PooledPSNR()
-    conds = frame_conditions(dataset, dataset_conditioning(dataset))
     for slot, i in enumerate(indices):
         cond = None if conds is None else conds[i]
         t0 = time.perf_counter()
@@ -227,4 +245,8 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
         "downscale": downscale,
         "supersample": model.supersample if supersample is None else supersample,
     }
+    if moved is not None:
+        result["pose_refinement"] = {
+            "translation_m_median": float(np.median([m[0] for m in moved])),
+            "rotation_deg_median": float(np.median([m[1] for m in moved]))}
     return result

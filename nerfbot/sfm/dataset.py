@@ -187,8 +187,8 @@ def choose_frame(rec: "pycolmap.Reconstruction", sfm_input: SfmInput,
     c2w = np.stack([image_c2w(images[n]) for n in names])
     if sfm_input.true_c2w is not None:
         if len(names) < 3:
-            raise RuntimeError(f"only {len(names)} images registered; aligning to the dataset's "
-                               "poses needs 3")
+            raise ValueError(f"only {len(names)} images registered; aligning to the dataset's "
+                             "poses needs 3")
         true = np.stack([sfm_input.true_c2w[n] for n in names])
         errors = pose_errors(c2w, true)
         return (errors.alignment, "aligned to the input dataset's poses (Umeyama similarity of "
@@ -322,7 +322,26 @@ def poses_from_images(sfm_input: SfmInput, out: Path, options: Optional[SfmOptio
     check_new_folder(out)
     if known_poses and (sfm_input.true_c2w is None or sfm_input.camera is None):
         raise ValueError("known poses: the input must be a dataset with poses and intrinsics")
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
+    try:
+        return _pose_and_write(sfm_input, out, options, downscale, baseline, known_poses,
+                               progress)
+    except BaseException:  # leave no half-written dataset behind (the folder was new or empty)
+        if created:
+            shutil.rmtree(out, ignore_errors=True)
+        else:
+            for child in out.iterdir():
+                if child.is_dir():
+                    shutil.rmtree(child)
+                else:
+                    child.unlink()
+        raise
+
+
+def _pose_and_write(sfm_input: SfmInput, out: Path, options: Optional[SfmOptions],
+                    downscale: int, baseline, known_poses: bool, progress: bool) -> dict:
+    """The work of :func:`poses_from_images` in its (new, empty) output folder."""
     if known_poses:
         result: SfmResult = triangulate_known_poses(
             sfm_input.root, sfm_input.names, out / "colmap", sfm_input.camera,

@@ -239,7 +239,8 @@ def run_sfm(image_dir: Path, image_names: Sequence[str], work_dir: Path,
         progress: show a progress bar.
 
     Raises:
-        RuntimeError: wrong pycolmap release, or no model could be built (too few matches).
+        RuntimeError: wrong pycolmap release.
+        ValueError: no model could be built from the images (too few matches).
     """
     names, work_dir, options, threads = _prepare(image_names, work_dir, options)
     database = work_dir / "database.db"
@@ -268,7 +269,7 @@ def run_sfm(image_dir: Path, image_names: Sequence[str], work_dir: Path,
         seconds["mapping"] = time.perf_counter() - t
         if not models:
             bar.close()
-            raise RuntimeError(
+            raise ValueError(
                 f"structure from motion found no model for {len(names)} images in {image_dir}: "
                 "too few matches (textureless or repetitive content, too little overlap, or "
                 "images too small: SIFT needs detail; try larger images or more views)")
