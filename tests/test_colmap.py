@@ -187,6 +187,9 @@ def test_sfm_registers_a_simulated_scene_with_small_pose_errors(textured_capture
     assert np.median(rel) < 0.01
     sigma = np.concatenate([k[:, 3] / k[:, 2] for k in posed.keypoints])
     assert 0.0 < np.median(sigma) < 0.05 and sigma.std() > 0   # widths vary with each point
+    for keys, (fx, fy, _, _) in zip(posed.keypoints, posed.intrinsics):
+        # never narrower than one training pixel's footprint
+        assert np.all(keys[:, 3] >= keys[:, 2] / max(fx, fy) * (1 - 1e-5))
     assert set(posed.splits["test"]) and len(posed.splits["test"]) <= 4
     report_file = json.loads((out / "sfm_report.json").read_text())
     assert report_file["registered"] == report["registered"]

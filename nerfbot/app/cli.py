@@ -697,8 +697,7 @@ def cmd_export(args) -> int:
 
 
 def cmd_colmap(args) -> int:
-    from nerfbot.data.errors import DatasetError
-    from nerfbot.data.readers import parse_dataset
+    from nerfbot.data.readers import is_dataset_folder
     from nerfbot.sfm.dataset import (check_new_folder, dataset_input, images_input,
                                      poses_from_images)
     from nerfbot.sfm.pipeline import SfmOptions
@@ -707,13 +706,7 @@ def cmd_colmap(args) -> int:
     if not source.is_dir():
         raise UsageError(f"{source}: expected a folder of images or a dataset folder")
     check_new_folder(out)
-    try:
-        parse_dataset(source)
-        is_dataset = True
-    except DatasetError as exc:
-        if "not a dataset folder" not in str(exc):
-            raise
-        is_dataset = False
+    is_dataset = is_dataset_folder(source)
     if is_dataset:
         if args.focal is not None:
             raise UsageError(f"--focal: {source} is a dataset; its own intrinsics are used")
@@ -885,8 +878,8 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
     p.add_argument("--seed", type=_non_negative_int, default=0)
     p.add_argument("--lr", type=float, default=None, help="learning rate (default: the method's)")
     p.add_argument("--depth-weight", type=float, default=0.0, metavar="W",
-                   help="depth supervision from the dataset's depth maps (DS-NeRF style, for "
-                        "RGB-D captures): weight of the L1 depth error in scene-cube diagonals "
+                   help="dense depth supervision from the dataset's depth maps (RGB-D "
+                        "captures): weight of the L1 depth error in scene-cube diagonals "
                         "(default 0: RGB only)")
     p.add_argument("--sparse-depth-weight", type=float, default=0.0, metavar="W",
                    help="DS-NeRF sparse depth supervision on the structure-from-motion "

@@ -106,6 +106,21 @@ def default_splits(n: int) -> dict[str, list[int]]:
     return {"train": [i for i in range(n) if i % TEST_EVERY], "test": test}
 
 
+def is_dataset_folder(path: Union[str, os.PathLike]) -> bool:
+    """Whether ``path`` is a folder holding a dataset description (nerfstudio, Blender / D-NeRF
+    or COLMAP), as :func:`parse_dataset` looks for one."""
+    path = Path(path)
+    if not path.is_dir():
+        return False
+    names = ("transforms.json",) + tuple(f"transforms_{s}.json" for s in ("train", "val", "test"))
+    if any((path / name).is_file() for name in names):
+        return True
+    try:
+        return find_colmap_model(path) is not None
+    except DatasetError:   # a model whose images are missing is still a dataset (a broken one)
+        return True
+
+
 def parse_dataset(path: Union[str, os.PathLike]) -> ParsedDataset:
     """Detect a dataset's format and validate its description (no image is read)."""
     path = Path(path)

@@ -5,7 +5,10 @@ e pixels at depth z displaces the point e z / f sideways; seen from cameras whos
 meet at angle theta at most, that uncertainty stretches to (e z / f) / sin(theta) along the
 viewing ray. The error is floored at :data:`MIN_ERROR_PX` (a point that fits exactly is not
 known exactly) and sin(theta) at :data:`MIN_SIN_ANGLE` (nearly parallel rays fix no depth; the
-mapper drops points under 1.5 degrees anyway).
+mapper drops points under 1.5 degrees anyway). The width is at least the footprint z / f' of
+one pixel of the image the field trains on (focal f' after resizing): the keypoint supervises
+that pixel's rays, which spread over that much of the surface. Narrower targets cost 3 dB of
+test PSNR with five views of the tabletop (BENCHMARKS.md, section 12).
 """
 
 from __future__ import annotations
@@ -48,6 +51,7 @@ def image_keypoints(rec: "pycolmap.Reconstruction", scale_x: float = 1.0,
         m = im.cam_from_world().matrix()
         camera = rec.cameras[im.camera_id]
         focal = float(camera.mean_focal_length())
+        train_focal = focal * min(scale_x, scale_y)
         rows = []
         for p2d in im.points2D:
             if not p2d.has_point3D():
@@ -61,7 +65,7 @@ def image_keypoints(rec: "pycolmap.Reconstruction", scale_x: float = 1.0,
             if z <= 0:
                 continue
             error = max(float(point.error), MIN_ERROR_PX)
-            sigma = error * z / focal / max(s, MIN_SIN_ANGLE)
+            sigma = max(error * z / focal / max(s, MIN_SIN_ANGLE), z / train_focal)
             u, v = p2d.xy
             rows.append((u * scale_x, v * scale_y, z, sigma))
         out[im.name] = np.asarray(rows, dtype=np.float32).reshape(-1, 4)
