@@ -140,7 +140,8 @@ def parse_colmap(model: Path, images: Path) -> ParsedDataset:
             raise DatasetError(str(e)) from None
         camera = camera_fields_of(rec.cameras[im.camera_id], f"{model}: cameras[{im.camera_id}]")
         frames.append(FrameSpec(
-            where=where, file_path=f"{images.name}/{im.name}", image_path=image_path, c2w=c2w, camera=camera, per_frame_intrinsics=True,
+            where=where, file_path=f"{images.name}/{im.name}", image_path=image_path,
+            c2w=c2w, camera=camera, per_frame_intrinsics=True,
             group=f"{model}: cameras[{im.camera_id}]"))
     return ParsedDataset(
         root=root, format="colmap", frames=frames, splits=None, manifest=None,

@@ -121,8 +121,8 @@ class Trainer:
             self.bank.load_depths()
         if config.sparse_depth_weight > 0:
             count = self.bank.load_keypoints()
-            log.info("sparse depth supervision: %d keypoints, %d rays per step", count,
-                     config.sparse_depth_rays)
+            log.info("sparse depth supervision: %d keypoints, %d keypoint pixels per step",
+                     count, config.sparse_depth_rays)
         aabb = self.model.aabb
         self.depth_scale = float((aabb[1] - aabb[0]).max()) * math.sqrt(3.0)
         self.generator = torch.Generator().manual_seed(config.seed)
