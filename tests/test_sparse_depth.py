@@ -14,7 +14,7 @@ from nerfbot.data import DatasetError, load_dataset
 from nerfbot.data.pixels import PixelBank
 from nerfbot.ops.losses import KEYPOINT_WEIGHT_FLOOR, keypoint_depth_loss
 from nerfbot.train.config import TrainConfig
-from nerfbot.train.trainer import Trainer
+from nerfbot.train.trainer import Trainer, batch_loss
 
 
 def _packed(counts, seed=0):
@@ -176,3 +176,20 @@ def test_training_with_sparse_depth_runs_and_needs_keypoints(tiny_capture, tmp_p
     assert result["steps"] == 12
     with pytest.raises(ValueError, match="sparse depth supervision needs keypoints"):
         Trainer(truth, tmp_path / "run2", config)
+
+
+def test_the_keypoint_term_is_added_on_the_keypoint_rays_only(tiny_capture, tmp_path):
+    truth = load_dataset(tiny_capture[0])
+    ds = load_dataset(_with_keypoints(tiny_capture[0], tmp_path / "kp",
+                                      lambda i, f: _true_keypoints(truth, i)))
+    trainer = Trainer(ds, tmp_path / "run", TrainConfig(
+        method="ngp", max_steps=1, sparse_depth_weight=0.1, progress=False,
+        options={"log2_hashmap_size": 12}))
+    losses = {}
+    for weight in (0.0, 0.1):
+        loss, out, s = batch_loss(trainer.model, trainer.bank, 512,
+                                  torch.Generator().manual_seed(0), 0.1, 32, weight)
+        losses[weight] = float(loss)
+        assert len(out.rgb) == (512 // (s * s)) * s * s   # random pixels + 32 keypoint pixels
+    # same rays, same colour loss: the difference is the keypoint term, positive
+    assert losses[0.1] > losses[0.0]

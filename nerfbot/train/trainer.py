@@ -81,13 +81,19 @@ def batch_loss(model: Model, bank: "PixelBank", n_rays: int, generator: torch.Ge
         krays, kcolour, kslot, kt, ksigma = bank.sample_keypoints(keypoints, generator, s)
         rays = Rays.cat([rays, krays])
         target, slot = torch.cat([target, kcolour]), torch.cat([slot, kslot])
-        missing = torch.full((n_pixels * k,), float("nan"), dtype=kt.dtype, device=kt.device)
-        depth = torch.cat([missing, kt]), torch.cat([torch.ones_like(missing), ksigma])
+        depth = kt, ksigma
     cond = None if bank.conds is None else bank.conds[slot].repeat_interleave(k, 0)
     loss, out = model.loss(rays, target, generator, cond, rays_per_pixel=k)
     if depth is not None:
+        # the keypoint rays come last, and packed samples are sorted by ray: their samples
+        # are the tail of the batch's
+        first = n_pixels * k
+        index = out.ray_indices
+        start = int(torch.searchsorted(index, torch.tensor(first, dtype=index.dtype,
+                                                           device=index.device)))
         loss = loss + sparse_depth_weight * keypoint_depth_loss(
-            out.weights, out.t_starts, out.t_ends, out.ray_indices, *depth)
+            out.weights[start:], out.t_starts[start:], out.t_ends[start:],
+            out.ray_indices[start:] - first, *depth)
     return loss, out, s
 
 
