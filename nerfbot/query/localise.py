@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 import torch
 
+from nerfbot.ops.alignment import rotation_angle_deg
 from nerfbot.ops.cameras import pixel_rays
 from nerfbot.ops.lie import se3_exp
 
@@ -33,9 +34,7 @@ def pose_error(c2w: np.ndarray, reference: np.ndarray) -> tuple[float, float]:
     """(translation error in metres, rotation error in degrees) between two (4, 4) poses."""
     c2w, reference = np.asarray(c2w, float), np.asarray(reference, float)
     dt = float(np.linalg.norm(c2w[:3, 3] - reference[:3, 3]))
-    r = c2w[:3, :3].T @ reference[:3, :3]
-    cos = np.clip((np.trace(r) - 1) / 2, -1.0, 1.0)
-    return dt, float(np.degrees(np.arccos(cos)))
+    return dt, float(rotation_angle_deg(c2w[:3, :3], reference[:3, :3]))
 
 
 def interest_pixels(image: np.ndarray, dilate: int = 3, max_keypoints: int = 500) -> np.ndarray:

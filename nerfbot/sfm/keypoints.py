@@ -7,8 +7,8 @@ viewing ray. The error is floored at :data:`MIN_ERROR_PX` (a point that fits exa
 known exactly) and sin(theta) at :data:`MIN_SIN_ANGLE` (nearly parallel rays fix no depth; the
 mapper drops points under 1.5 degrees anyway). The width is at least the footprint z / f' of
 one pixel of the image the field trains on (focal f' after resizing): the keypoint supervises
-that pixel's rays, which spread over that much of the surface. Narrower targets cost 3 dB of
-test PSNR with five views of the tabletop (BENCHMARKS.md, section 12).
+that pixel's rays, which spread over that much of the surface. Narrower targets cost the
+tabletop's few-view runs PSNR (BENCHMARKS.md, section 12).
 """
 
 from __future__ import annotations
@@ -22,18 +22,13 @@ MIN_ERROR_PX = 0.5
 MIN_SIN_ANGLE = 0.05
 
 
-def _centre(image: "pycolmap.Image") -> np.ndarray:
-    m = image.cam_from_world().matrix()
-    return -m[:, :3].T @ m[:, 3]
-
-
 def image_keypoints(rec: "pycolmap.Reconstruction", scale_x: float = 1.0,
                     scale_y: float = 1.0) -> dict[str, np.ndarray]:
     """Image name -> (K, 4) float32 keypoints of every registered image: u, v in pixels of the
     image resized by (``scale_x``, ``scale_y``) (centres at +0.5, distorted as the image is),
     z-depth and its standard deviation in the reconstruction's units."""
     images = {i: im for i, im in rec.images.items() if im.has_pose}
-    centres = {i: _centre(im) for i, im in images.items()}
+    centres = {i: np.asarray(im.projection_center()) for i, im in images.items()}
     # per point: the widest angle between its viewing rays, per observing image
     widest: dict[tuple[int, int], float] = {}
     for pid, point in rec.points3D.items():

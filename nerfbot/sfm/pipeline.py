@@ -149,23 +149,26 @@ def _bundle_options(refine_intrinsics: bool, threads: int) -> "pycolmap.BundleAd
 
 def refine_reconstruction(rec: "pycolmap.Reconstruction", max_reproj_error_px: float,
                           rounds: int, refine_intrinsics: bool = False,
-                          threads: int = -1) -> tuple[list[int], list[str]]:
+                          threads: int = -1, fixed_poses: bool = False
+                          ) -> tuple[list[int], list[str]]:
     """Filter observations beyond ``max_reproj_error_px`` and bundle-adjust with a Cauchy loss,
     ``rounds`` times, in place. An image left with fewer than :data:`MIN_IMAGE_POINTS`
     observations is deregistered: its pose rested on mismatches (a table's 180-degree symmetry
-    registers such images about 110 degrees off).
+    registers such images about 110 degrees off). With ``fixed_poses`` (known cameras) only
+    the points move and no image is deregistered.
 
     Returns:
         (observations dropped per round, names of the images deregistered).
     """
     dropped, removed = [], []
     options = _bundle_options(refine_intrinsics, threads)
+    options.refine_rig_from_world = not fixed_poses
     for _ in range(rounds):
         manager = pycolmap.ObservationManager(rec)
         dropped.append(int(manager.filter_all_points3D(max_reproj_error_px,
                                                        MIN_TRIANGULATION_ANGLE_DEG)))
-        weak = [im for im in rec.images.values()
-                if im.has_pose and im.num_points3D < MIN_IMAGE_POINTS]
+        weak = [] if fixed_poses else [im for im in rec.images.values()
+                                       if im.has_pose and im.num_points3D < MIN_IMAGE_POINTS]
         for im in weak:
             removed.append(im.name)
             manager.deregister_frame(im.frame_id)
@@ -339,13 +342,9 @@ def triangulate_known_poses(image_dir: Path, image_names: Sequence[str], work_di
                                           options=mapping)
         seconds["triangulation"] = time.perf_counter() - t
         t = time.perf_counter()
-        dropped = []
-        points_only = _bundle_options(False, threads)
-        points_only.refine_rig_from_world = False
-        for _ in range(options.refine_rounds):
-            dropped.append(int(pycolmap.ObservationManager(rec).filter_all_points3D(
-                options.max_reproj_error_px, MIN_TRIANGULATION_ANGLE_DEG)))
-            pycolmap.bundle_adjustment(rec, points_only)
+        dropped, _ = refine_reconstruction(rec, options.max_reproj_error_px,
+                                           options.refine_rounds, threads=threads,
+                                           fixed_poses=True)
         seconds["refinement"] = time.perf_counter() - t
     seconds["total"] = time.perf_counter() - start
     bar.n = len(names)
