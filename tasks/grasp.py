@@ -52,7 +52,9 @@ from nerfbot.ops.cameras import Cameras, look_at
 from nerfbot.ops.pointcloud import cloud_arrays, depth_to_cloud, fuse_clouds
 from nerfbot.query.export import colorize_depth, save_image
 from nerfbot.query.render import depth
+from nerfbot.query.semantic import locate_class
 from nerfbot.train.checkpoints import CHECKPOINT
+from nerfbot.train.labelling import LabelTrainConfig, label_run
 from nerfbot.train.runs import load_model
 from nerfbot.train.trainer import TrainConfig, Trainer
 from sims.camera import CaptureCamera
@@ -115,13 +117,29 @@ def ensure_trained(cfg: GraspTaskConfig, scene_seed: int) -> Path:
     ds = load_dataset(data)
     budget = (dict(max_steps=cfg.train_steps) if cfg.train_steps
               else dict(max_seconds=cfg.train_seconds))
-    trainer = Trainer(ds, run, TrainConfig(method=cfg.method, **budget, seed=scene_seed, options=dict(cfg.train_options),
+    trainer = Trainer(ds, run, TrainConfig(method=cfg.method, **budget, seed=scene_seed,
+                                           options=dict(cfg.train_options),
                                            device=cfg.device, progress=cfg.progress))
     if (run / CHECKPOINT).exists():
         trainer.load()
     summary = trainer.train()
     write_json_atomic(done, summary)
     return run
+
+
+def ensure_labelled(cfg: GraspTaskConfig, scene_seed: int) -> Path:
+    """The scene's run with a label head trained on its frozen field
+    (:func:`nerfbot.train.labelling.label_run`, full label maps of the capture), made if
+    missing."""
+    run = ensure_trained(cfg, scene_seed)
+    labelled = run.with_name(run.name + "-labels")
+    if (labelled / CHECKPOINT).exists():
+        return labelled
+    model, info = load_model(run, cfg.device)
+    data = ensure_capture(cfg, scene_seed)
+    label_run(model, info, load_dataset(data), data, labelled,
+              LabelTrainConfig(seed=scene_seed), progress=cfg.progress)
+    return labelled
 
 
 def calibrate_threshold(cfg: GraspTaskConfig) -> dict:
@@ -293,11 +311,13 @@ def cloud_from_depths(depths: Sequence[np.ndarray], poses: Sequence[np.ndarray],
 
 
 def attempt_object(world: World, ctx: DepthContext, source: str, name: str, trial: int,
-                   scene_seed: int, cfg: GraspTaskConfig, image_path: Optional[Path]) -> Attempt:
-    """Query depth around object ``name``, plan, execute from rest, report."""
+                   scene_seed: int, cfg: GraspTaskConfig, image_path: Optional[Path],
+                   located: Optional[np.ndarray] = None) -> Attempt:
+    """Query depth around object ``name``, plan, execute from rest, report. ``located``: where
+    the field's labels put the object ((3,) metres; None: the simulator's body position)."""
     t0 = time.perf_counter()
     world.reset()
-    base = world.object_position(name)
+    base = world.object_position(name) if located is None else np.asarray(located, float)
     glass = any(world.model.geom_bodyid[g] == world.model.body(name).id for g in world.transparent)
     center = base + np.array([0.0, 0.0, 0.06])
     poses = query_poses(center, cfg)
@@ -306,6 +326,9 @@ def attempt_object(world: World, ctx: DepthContext, source: str, name: str, tria
                                         cfg.edge_jump)
     grasps = plan_grasps(points, normals, target=base[:2]) if len(points) else []
     attempt = Attempt(trial, scene_seed, name, glass, source, False, "", len(points))
+    if located is not None:
+        attempt.located_error_m = float(np.linalg.norm(located[:2]
+                                                       - world.object_position(name)[:2]))
     if not grasps:
         attempt.reason = "no grasp found"
     else:
@@ -370,7 +393,7 @@ def run_experiment(cfg: GraspTaskConfig, sources: Sequence[str]) -> dict:
             raise ValueError(f"unknown depth source {s!r} (choose from {list(DEPTH_SOURCES)})")
     out = Path(cfg.out)
     (out / "trials").mkdir(parents=True, exist_ok=True)
-    needs_field = any(DEPTH_SOURCES[s][0] for s in sources)
+    needs_field = any(DEPTH_SOURCES[s][0] for s in sources) or cfg.target is not None
     threshold, calibration = cfg.threshold, None
     if "dexnerf" in sources and threshold is None:
         calibration = calibrate_threshold(cfg)
@@ -382,12 +405,24 @@ def run_experiment(cfg: GraspTaskConfig, sources: Sequence[str]) -> dict:
         scene_seed = cfg.seed + trial
         model = None
         if needs_field:
-            model, _ = load_model(ensure_trained(cfg, scene_seed), cfg.device)
+            run = ensure_labelled(cfg, scene_seed) if cfg.target else \
+                ensure_trained(cfg, scene_seed)
+            model, _ = load_model(run, cfg.device)
         world = World(scene_name(cfg, scene_seed), cfg.query_size, cfg.query_fov)
         try:
             transparent = {geom_name(world.model, g) for g in world.transparent}
             objects = select_objects(world.model, declared_objects(world.model), transparent,
-                                     cfg.objects)
+                                     cfg.target or cfg.objects)
+            located = None
+            if cfg.target is not None:
+                # glass counts as occupied at the Dex-NeRF threshold, when there is one
+                found = locate_class(model, cfg.target, threshold)
+                if not len(found.points):
+                    raise ValueError(f"scene {scene_seed}: the field labels no occupied point "
+                                     f"{cfg.target!r}")
+                located = found.centre
+                log.info("%s located by labels at %s (%d points)", cfg.target,
+                         np.round(located, 3).tolist(), len(found.points))
             ctx = DepthContext(world, model, threshold,
                                DepthSensorModel(transparent=cfg.sensor_mode, seed=scene_seed))
             jobs = [(s, o) for s in sources for o in objects]
@@ -396,7 +431,7 @@ def run_experiment(cfg: GraspTaskConfig, sources: Sequence[str]) -> dict:
             for source, name in bar:
                 image = out / "trials" / f"{source}_seed{scene_seed}_{name}.png"
                 attempts.append(attempt_object(world, ctx, source, name, trial, scene_seed, cfg,
-                                               image))
+                                               image, located))
                 bar.set_postfix(ok=sum(a.success for a in attempts if a.depth_source == source))
         finally:
             world.close()
@@ -428,6 +463,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--trials", type=int, default=10, help="scenes (seeds) to try")
     parser.add_argument("--seed", type=int, default=0, help="scene seed of the first trial")
     parser.add_argument("--objects", default="all", help="glass | opaque | all | names")
+    parser.add_argument("--target", default=None, metavar="NAME",
+                        help="grasp object NAME, found by the field's labels (a label head "
+                             "trained on each scene's run) instead of the simulator's position")
     parser.add_argument("--threshold", type=float, default=None,
                         help="Dex-NeRF density threshold, 1/m (default: calibrate on a "
                              f"held-out scene, seed {CALIBRATION_SEED})")
@@ -457,7 +495,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if args.trials < 1:
         parser.error("--trials must be at least 1")
     cfg = GraspTaskConfig(scene=args.scene, depth=args.depth, trials=args.trials, seed=args.seed,
-                          objects=args.objects, threshold=args.threshold,
+                          objects=args.objects, threshold=args.threshold, target=args.target,
                           train_steps=args.train_steps or None,
                           train_seconds=args.train_seconds, capture_size=args.capture_size,
                           train_options={**GraspTaskConfig().train_options, **dict(args.option)},

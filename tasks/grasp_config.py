@@ -23,6 +23,11 @@ class GraspTaskConfig:
     """"glass" (transparent objects), "opaque" (the look-alikes), "all", or comma-separated names."""
     threshold: Optional[float] = None
     """Dex-NeRF density threshold (1/m); None = calibrate on scene seed CALIBRATION_SEED."""
+    target: Optional[str] = None
+    """Grasp this object, found by the field's labels (a label head trained on each scene's
+    run: :func:`tasks.grasp.ensure_labelled`): where it is comes from the occupied points the
+    head gives its class (:func:`nerfbot.query.semantic.locate_class`), not from the
+    simulator."""
     capture_views: int = 100
     capture_test_views: int = 10
     capture_size: int = 160
@@ -75,3 +80,6 @@ class Attempt:
     grasp: Optional[dict] = None
     lift_height: Optional[float] = None
     seconds: float = 0.0
+    located_error_m: Optional[float] = None
+    """With a target found by labels: horizontal distance from where the labels put it to the
+    body's true position, metres."""

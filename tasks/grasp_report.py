@@ -36,7 +36,14 @@ def summarize(attempts: list[Attempt], source: str, cfg: GraspTaskConfig,
         "threshold": threshold if source == "dexnerf" else None,
         "scene": cfg.scene,
         "seeds": [cfg.seed, cfg.seed + cfg.trials - 1],
+        "target": cfg.target,
+        "located_error_m_median": _median([a.located_error_m for a in attempts
+                                            if a.located_error_m is not None]),
     }
+
+
+def _median(values: list[float]) -> Optional[float]:
+    return float(np.median(values)) if values else None
 
 
 def plot_success(summaries: dict, path: Path, title: str = "") -> Path:
@@ -84,6 +91,10 @@ def format_table(summaries: dict) -> str:
     for label, key in (("transparent", "transparent_success_rate"),
                        ("opaque", "opaque_success_rate"), ("all", "success_rate")):
         lines.append(f"{label:<{width}} " + " ".join(cell(summaries[s][key]) for s in sources))
+    located = [summaries[s].get("located_error_m_median") for s in sources]
+    if any(v is not None for v in located):
+        lines.append(f"{'located (cm)':<{width}} " + " ".join(
+            f"{100 * v:8.1f}" if v is not None else f"{'-':>8}" for v in located))
     return "\n".join(lines)
 
 

@@ -220,6 +220,8 @@ def _train_config(args, method: str, options: dict, max_seconds, background):
                        options=options, background=background,
                        depth_weight=args.depth_weight,
                        sparse_depth_weight=args.sparse_depth_weight,
+                       labels=args.labels or args.label_clicks is not None,
+                       label_weight=args.label_weight, label_clicks=args.label_clicks,
                        eval_at_seconds=args.eval_at or (),
                        checkpoint_every_seconds=args.checkpoint_every_seconds,
                        checkpoint_every_steps=args.checkpoint_every_steps,
@@ -327,6 +329,24 @@ def cmd_eval(args) -> int:
     return 0
 
 
+def cmd_label(args) -> int:
+    """Train a label head on a finished run's frozen field and write the labelled run."""
+    from nerfbot.eval.evaluation import evaluate
+    from nerfbot.train.labelling import LabelTrainConfig, label_run
+
+    _refuse_source_run(Path(args.run), Path(args.out), "labelled")
+    model, info, data, ds = _run_and_dataset(args)
+    config = LabelTrainConfig(steps=args.steps, clicks=args.clicks, seed=args.seed)
+    report = label_run(model, info, ds, data, Path(args.out), config, overwrite=args.overwrite,
+                       progress=not args.no_progress)
+    if ds.splits.get("test"):
+        metrics = evaluate(model, ds, "test", with_ssim=False)
+        report.update(label_miou=metrics.get("label_miou"), label_iou=metrics.get("label_iou"))
+    report["out"] = str(args.out)
+    print(json.dumps(report, indent=2))
+    return 0
+
+
 def _bake_request(args) -> tuple[str, dict]:
     """(baked method, bake options) of ``nerfbot bake``'s flags: ``--method M`` with its
     ``--option``s, where ``--cache NP,ND`` spells fastnerf_cache with options np, nd,
@@ -396,13 +416,13 @@ def cmd_bake(args) -> int:
     return 0
 
 
-def _refuse_source_run(run: Path, out: Path) -> None:
-    """``nerfbot bake RUN --out RUN`` would overwrite the run being baked."""
+def _refuse_source_run(run: Path, out: Path, what: str = "baked") -> None:
+    """``nerfbot bake RUN --out RUN`` (or ``label``) would overwrite its source run."""
     import os
 
     same = out.exists() and run.exists() and os.path.samefile(out, run)
     if same or out.absolute() == run.absolute():
-        raise FileExistsError(f"{out}: the run being baked; choose another --out for the baked "
+        raise FileExistsError(f"{out}: the run being {what}; choose another --out for the {what} "
                               "run")
 
 
@@ -559,7 +579,8 @@ def cmd_render(args) -> int:
     import numpy as np
 
     from nerfbot.data.outputs import check_output_file, check_output_folder
-    from nerfbot.query.export import colorize_depth, save_image, to_uint8, write_video
+    from nerfbot.query.export import (colorize_depth, colorize_labels, save_image, to_uint8,
+                                      write_video)
     from nerfbot.query.render import render_image
     from nerfbot.train.runs import load_model
     from tqdm.auto import tqdm
@@ -579,8 +600,12 @@ def cmd_render(args) -> int:
     ds = _render_dataset(args, run, info, needed=args.path != "orbit" and not args.sweep)
     cams, conds = _render_plan(args, model, info, ds)
     thresholds = [threshold] if mode == "threshold" else []
+    labels = model.label_head is not None
+    if args.what == "labels" and not labels:
+        raise UsageError(f"--what labels: {run} was trained without labels (train with --labels)")
+    n_classes = model.label_head.n_classes if labels else 0
     images = (render_image(model, cams, i, cond=conds[i], supersample=args.supersample,
-                           thresholds=thresholds)
+                           thresholds=thresholds, labels=labels)
               for i in range(len(cams)))
     images = tqdm(images, total=len(cams), desc="render", disable=args.no_progress)
     if video:
@@ -590,6 +615,8 @@ def cmd_render(args) -> int:
                     yield to_uint8(img["rgb"])
                 elif args.what == "depth":
                     yield colorize_depth(*_depth_of(img, mode))
+                elif args.what == "labels":
+                    yield colorize_labels(img["labels"].argmax(-1), n_classes)
                 else:
                     yield to_uint8(np.repeat(img["opacity"][..., None], 3, -1))
         write_video(out, frames(), args.fps)
@@ -602,9 +629,14 @@ def cmd_render(args) -> int:
                 save_image(out / f"opacity_{i:04d}.png",
                            np.repeat(img["opacity"][..., None], 3, -1))
                 np.save(out / f"depth_{i:04d}.npy", z.astype(np.float32))
+                if labels:
+                    classes = img["labels"].argmax(-1).astype(np.uint8)
+                    save_image(out / f"labels_{i:04d}.png", colorize_labels(classes, n_classes))
+                    np.save(out / f"labels_{i:04d}.npy", classes)
     what = f"a {args.sweep} sweep" if args.sweep else f"{args.path} views"
     depth = mode + (f" (m = {threshold:g} /m)" if threshold is not None else "")
-    print(f"wrote {len(cams)} images of {what} to {out}; depth: {depth}, from {source}")
+    classes = f"; labels: {', '.join(model.label_head.classes.names)}" if labels else ""
+    print(f"wrote {len(cams)} images of {what} to {out}; depth: {depth}, from {source}{classes}")
     return 0
 
 
@@ -639,8 +671,9 @@ def _export_condition(args, info):
 def cmd_export(args) -> int:
     from nerfbot.data.outputs import check_output_file
     from nerfbot.query.density import default_density_threshold
-    from nerfbot.query.geometry import (DepthQuery, density_mesh, point_cloud, tsdf_mesh,
-                                        write_mesh, write_point_cloud)
+    from nerfbot.query.export import label_palette
+    from nerfbot.query.geometry import (DepthQuery, colour_by_labels, density_mesh,
+                                        point_cloud, tsdf_mesh, write_mesh, write_point_cloud)
     from nerfbot.train.runs import load_model
 
     run, out = Path(args.run), Path(args.out)
@@ -652,8 +685,11 @@ def cmd_export(args) -> int:
         raise UsageError(f"--out {out}: folder {out.parent} does not exist")
     mode, threshold, source = _render_depth_query(args, run)
     model, info = load_model(run, args.device)
+    if args.what == "labels" and model.label_head is None:
+        raise UsageError(f"--what labels: {run} was trained without labels (train with --labels)")
     cond = _export_condition(args, info)
     bounds = _export_bounds(args, model)
+    paint = (lambda g: colour_by_labels(model, g)) if args.what == "labels" else (lambda g: g)
     progress = not args.no_progress
     if args.kind == "mesh":
         level = args.threshold if args.threshold is not None else threshold
@@ -664,7 +700,7 @@ def cmd_export(args) -> int:
         if not len(mesh.faces):
             raise ValueError(f"{run}: no density reaches {level:g} /m inside the box: no surface "
                              "to write; give a lower --threshold")
-        write_mesh(mesh, out)
+        write_mesh(paint(mesh), out)
         what = f"{len(mesh.vertices)} vertices, {len(mesh.faces)} faces, marching cubes at " \
             f"{level:g} /m"
     else:
@@ -682,16 +718,20 @@ def cmd_export(args) -> int:
                                 voxel=args.voxel, progress=progress)
             if not len(cloud.points):
                 raise ValueError(nothing)
-            write_point_cloud(cloud, out)
+            write_point_cloud(paint(cloud), out)
             what = f"{len(cloud.points)} points"
         else:
             mesh = tsdf_mesh(model, cams, query, conds, voxel=args.voxel, bounds=bounds,
                              progress=progress)
             if not len(mesh.faces):
                 raise ValueError(nothing)
-            write_mesh(mesh, out)
+            write_mesh(paint(mesh), out)
             what = f"{len(mesh.vertices)} vertices, {len(mesh.faces)} faces, TSDF"
         what += f" from {len(cams)} {args.views} views, depth: {query.describe()} ({source})"
+    if args.what == "labels":
+        what += "; coloured by class (" + ", ".join(
+            f"{name} {'#%02x%02x%02x' % tuple(rgb)}" for name, rgb in
+            zip(model.label_head.classes.names, label_palette(model.label_head.n_classes))) + ")"
     print(f"wrote {out}: {what}; world frame, metres")
     return 0
 
@@ -885,6 +925,15 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
                    help="DS-NeRF sparse depth supervision on the structure-from-motion "
                         "keypoints nerfbot colmap writes (frames[].sparse_depth_file_path); "
                         "0.1 is DS-NeRF's weight (default 0: off)")
+    p.add_argument("--labels", action="store_true",
+                   help="train a semantic label head (Semantic-NeRF) on the capture's "
+                        "segmentation; classes: background, each object of the manifest, "
+                        "structure")
+    p.add_argument("--label-clicks", type=_positive_int, default=None, metavar="N",
+                   help="labels from N labelled pixels per class over the training frames "
+                        "(iLabel's clicks) instead of full label maps; implies --labels")
+    p.add_argument("--label-weight", type=_non_negative_float, default=0.04, metavar="W",
+                   help="weight of the labels' cross-entropy (default 0.04, Semantic-NeRF's)")
     p.add_argument("--resume", action="store_true",
                    help="continue the run in --out (with the same data, method, options, "
                         "bounds, background and seed; the budgets may change)")
@@ -935,6 +984,30 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
                    help="with --depth-sweep: write the sweep as a PNG plot here")
     p.add_argument("--device", type=_device, default="cpu")
     p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser("label", help="add semantic labels to a trained run: a label head "
+                                     "trained on its frozen field (a run of its own)",
+                       description="Train Semantic-NeRF's label head on a finished static "
+                                   "run, from the capture's segmentation (classes: background, "
+                                   "each object of the manifest, structure) or a few clicks "
+                                   "per class; the field is not changed. Writes a run with "
+                                   "labels (render --what labels, export --what labels) and "
+                                   "prints the test views' mean IoU.")
+    p.add_argument("run", type=Path, help="trained run folder (a static method)")
+    p.add_argument("--out", required=True, type=Path,
+                   help="run folder for the labelled run (new or empty; not RUN)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace --out when it holds an earlier run")
+    p.add_argument("--data", type=Path, default=None,
+                   help="dataset (default: the one the run was trained on)")
+    p.add_argument("--clicks", type=_positive_int, default=None, metavar="N",
+                   help="N labelled pixels per class over the training frames (iLabel) "
+                        "instead of full label maps")
+    p.add_argument("--steps", type=_positive_int, default=1000, help="head steps (default 1000)")
+    p.add_argument("--seed", type=_non_negative_int, default=0)
+    p.add_argument("--device", type=_device, default="cpu")
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=cmd_label)
 
     p = sub.add_parser("bake", help="bake a trained run into a faster renderer: a FastNeRF "
                                     "cache (--cache) or a PlenOctree (--octree)",
@@ -995,8 +1068,9 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing video file, or the images of an earlier render "
                         "folder")
-    p.add_argument("--what", default="rgb", choices=("rgb", "depth", "opacity"),
-                   help="what a video shows")
+    p.add_argument("--what", default="rgb", choices=("rgb", "depth", "opacity", "labels"),
+                   help="what a video shows (labels: runs trained with --labels; image "
+                        "folders get labels_*.png / .npy class indices for them always)")
     p.add_argument("--frames", type=_positive_int, default=60,
                    help="orbit frames, or images of a --sweep (default 60)")
     p.add_argument("--fps", type=_positive_float, default=24.0)
@@ -1037,6 +1111,9 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, type=Path,
                    help="file: .ply/.pcd/.xyz (pointcloud) or .ply/.obj/.glb (mesh, tsdf)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing file")
+    p.add_argument("--what", default="rgb", choices=("rgb", "labels"),
+                   help="colours: the field's (rgb) or each point's class (labels: runs "
+                        "trained with --labels)")
     p.add_argument("--views", default="train", choices=("train", "test", "all"),
                    help="cameras whose rendered depth makes a pointcloud or tsdf (default train)")
     p.add_argument("--aabb", type=float, nargs=6, default=None,

@@ -61,13 +61,14 @@ LAYOUTS = {
     "dataset": ("transforms*.json", "images", "depth", "segmentation", "sensor_depth", "train",
                 "val", "test", "states.npz"),
     "run": ("checkpoint*.pt", "checkpoints", "config.json", "curve.json", "metrics.json",
-            "auto.json", "auto_sweep"),
+            "auto.json", "auto_sweep", "labels.json"),
     "baked_run": ("checkpoint*.pt", "config.json", "curve.json", "bake.json"),
     "bench": ("bench.json", "bench.csv", "bench_runs.csv", "bench.md", "psnr_vs_*.png", "data",
               "runs"),
     "demo": ("data", "run", "renders", "metrics.json", "sheet.png", "depth.png", "depth.npy",
              "depth_gt.png"),
-    "render": ("rgb_*.png", "depth_*.png", "opacity_*.png", "depth_*.npy"),
+    "render": ("rgb_*.png", "depth_*.png", "opacity_*.png", "depth_*.npy", "labels_*.png",
+               "labels_*.npy"),
 }
 
 #: Entries of a kind that are nerfbot folders of another kind (checked with that kind's layout).

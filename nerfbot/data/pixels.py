@@ -84,6 +84,11 @@ class PixelBank:
         self.depths: Optional[torch.Tensor] = None
         """(P,) float32 z-depth of every pixel (NaN: unknown, outside the bounds or masked out),
         loaded by :meth:`load_depths` for depth supervision."""
+        self.labels: Optional[torch.Tensor] = None
+        """(P,) int64 class of every pixel (-1: none), loaded by :meth:`load_labels`."""
+        self.clicks: Optional[torch.Tensor] = None
+        """(C,) pixel indices of the labelled pixels when labels are sparse (iLabel's clicks),
+        else None."""
         self._dataset, self._indices = dataset, list(indices)
         self.last_pixels: Optional[torch.Tensor] = None
         """(n,) pixel indices of the last :meth:`sample`."""
@@ -151,6 +156,36 @@ class PixelBank:
         self.keypoints = torch.from_numpy(np.concatenate(rows)).to(self.device)
         self.keypoint_slots = torch.from_numpy(np.concatenate(slots)).to(self.device)
         return len(self.keypoints)
+
+    def load_labels(self, maps: list[np.ndarray], sparse: bool = False) -> int:
+        """Keep the class of every pixel of the training frames, ``maps`` (one (H, W) label
+        map per training frame, in order, -1 = unlabelled: :mod:`nerfbot.data.labels`). With
+        ``sparse`` (a few clicks) the labelled pixels are also listed for
+        :meth:`sample_clicks`. Returns the number of labelled pixels; ValueError when there is
+        none."""
+        if len(maps) != len(self._indices):
+            raise ValueError(f"{len(maps)} label maps for {len(self._indices)} training frames")
+        flat = np.concatenate([np.asarray(m).reshape(-1) for m in maps]).astype(np.int64)
+        if flat.shape[0] != len(self):
+            raise ValueError("label maps do not match the training images' sizes")
+        labelled = int((flat >= 0).sum())
+        if not labelled:
+            raise ValueError(f"{self._dataset.root}: no training pixel has a label")
+        self.labels = torch.from_numpy(flat).to(self.device)
+        self.clicks = torch.from_numpy(np.flatnonzero(flat >= 0)).to(self.device) \
+            if sparse else None
+        return labelled
+
+    def sample_clicks(self, n: int, generator: torch.Generator, supersample: int = 1
+                      ) -> tuple[Rays, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``n`` random draws (with repetition) among the labelled pixels of sparse labels
+        (:meth:`load_labels`): rays (n * S * S,), colours (n, 3), frame slots (n,) and
+        classes (n,), as :meth:`sample` gives them."""
+        pick = torch.randint(len(self.clicks), (n,), generator=generator).to(self.device)
+        p = self.clicks[pick]
+        slot = torch.searchsorted(self.offsets[1:], p, right=True)
+        rays, colours = self._pixel_rays(p, slot, generator, supersample)
+        return rays, colours, slot, self.labels[p]
 
     def sample_keypoints(self, n: int, generator: torch.Generator, supersample: int = 1
                          ) -> tuple[Rays, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -11,6 +11,7 @@ import numpy as np
 from nerfbot.data.conditioning import dataset_conditioning, frame_conditions
 from nerfbot.data.dataset import Dataset
 from nerfbot.data.errors import DatasetError
+from nerfbot.data.labels import label_map, mean_iou
 from nerfbot.data.pixels import depth_valid_mask
 from nerfbot.models.base import Model
 from nerfbot.ops.cameras import Cameras
@@ -140,7 +141,10 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
     moves, a small part of each image; None without segmentation or objects); psnr_non_sky:
     PSNR pooled over the pixels that show a geom (segmentation >= 0; at 1/K resolution, pixels
     whose whole block does), so a scene that is mostly sky is not scored mostly on its sky
-    (None without segmentation); render_ms_per_image (median over images); num_images; downscale; supersample.
+    (None without segmentation); for a model with a label head and test frames with
+    segmentation, label_miou (mean IoU over the classes present, pooled over the frames'
+    pixels: :func:`~nerfbot.data.labels.mean_iou`) and label_iou {class: IoU};
+    render_ms_per_image (median over images); num_images; downscale; supersample.
 
     Pixels the dataset's masks mark invalid (``mask_path``, or outside an undistorted image)
     are left out of every score: psnr takes the mean squared error over the valid pixels, ssim
@@ -186,6 +190,8 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
     cams = Cameras.from_numpy(c2w, dataset.intrinsics[indices], dataset.sizes[indices])
     if downscale > 1:
         cams = cams.scaled(1.0 / downscale)
+    head = model.label_head
+    label_pred, label_true = [], []
     psnrs, ssims, times = [], [], []
     all_px, obj_px = _DepthErrorSum(), _DepthErrorSum()
     all_med, obj_med = _DepthErrorSum(), _DepthErrorSum()
@@ -194,7 +200,8 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
     for slot, i in enumerate(indices):
         cond = None if conds is None else conds[i]
         t0 = time.perf_counter()
-        out = render_image(model, cams, slot, cond=cond, supersample=supersample)
+        out = render_image(model, cams, slot, cond=cond, supersample=supersample,
+                           labels=head is not None)
         times.append(time.perf_counter() - t0)
         h, w = out["rgb"].shape[:2]
         gt = downscale_area(dataset.image_float(i), w, h)
@@ -204,6 +211,12 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
             if with_ssim:
                 ssims.append(ssim(out["rgb"], gt, scored))
         seg = dataset.segmentations[i]
+        if head is not None and seg is not None:
+            # a low-resolution pixel is scored against the class at its block's centre
+            k = downscale
+            truth = label_map(seg, head.classes, dataset.valid_mask(i))[k // 2::k, k // 2::k]
+            label_true.append(truth[:h, :w].reshape(-1))
+            label_pred.append(out["labels"].argmax(-1).reshape(-1))
         if seg is not None:
             content = downscale_area((seg >= 0).astype(np.float32), w, h) >= 1.0 - 1e-4
             non_sky_psnr.add(out["rgb"], gt, content if scored is None else content & scored)
@@ -245,6 +258,12 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
         "downscale": downscale,
         "supersample": model.supersample if supersample is None else supersample,
     }
+    if label_true:
+        miou, iou = mean_iou(np.concatenate(label_pred), np.concatenate(label_true),
+                             head.n_classes)
+        result["label_miou"] = miou
+        result["label_iou"] = {name: (None if np.isnan(v) else float(v))
+                               for name, v in zip(head.classes.names, iou)}
     if moved is not None:
         result["pose_refinement"] = {
             "translation_m_median": float(np.median([m[0] for m in moved])),

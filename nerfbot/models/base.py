@@ -46,6 +46,15 @@ class Model(nn.Module, metaclass=abc.ABCMeta):
     background: nn.Module
     aabb: torch.Tensor
 
+    #: Whether the renderer keeps sample features for a label head.
+    supports_labels: bool = False
+
+    @property
+    def label_head(self) -> Optional[nn.Module]:
+        """Semantic-NeRF's label branch (:mod:`nerfbot.models.labels`; set by assigning a
+        module, which registers it), None without labels."""
+        return self._modules.get("label_head")
+
     @abc.abstractmethod
     def render_rays(self, rays: Rays, generator: Optional[torch.Generator] = None,
                     cond: Optional[torch.Tensor] = None) -> RenderOutput:

@@ -32,6 +32,8 @@ class HierarchicalModelConfig:
 class HierarchicalModel(Model):
     """NeRF's renderer: coarse stratified samples, fine pdf samples, two fields, both trained."""
 
+    supports_labels = True  # on the fine field's samples
+
     def __init__(self, coarse: Field, fine: Field, background: nn.Module, aabb,
                  config: HierarchicalModelConfig | None = None):
         super().__init__()
@@ -48,8 +50,11 @@ class HierarchicalModel(Model):
         x = rays.origins[ray_idx] + d * t_mid[:, None]
         sigma, feat = field.density(x, gather_rows(cond, ray_idx))
         rgb = field.color(feat, d, gather_rows(cond, ray_idx))
-        return composite(sigma, rgb, ts, te, ray_idx, n, bg, t_far, rays.z_per_t,
-                         with_median=not self.training)
+        out = composite(sigma, rgb, ts, te, ray_idx, n, bg, t_far, rays.z_per_t,
+                        with_median=not self.training)
+        if field is self.field and self.label_head is not None:
+            out.positions, out.features = x, feat
+        return out
 
     def _render_both(self, rays: Rays, generator=None, cond=None):
         t_near, t_far, _ = ray_aabb(rays.origins, rays.directions, self.aabb)

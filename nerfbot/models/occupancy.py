@@ -133,6 +133,8 @@ CONTRACTED_FAR = 1000.0
 class OccupancyModel(Model):
     """Occupancy-grid ray marching over packed samples (Instant-NGP's renderer)."""
 
+    supports_labels = True
+
     def __init__(self, field: Field, background: nn.Module, aabb,
                  config: OccupancyModelConfig | None = None):
         super().__init__()
@@ -209,7 +211,7 @@ class OccupancyModel(Model):
         rounds = self.config.train_early_termination and not bool(self.train_full_march)
         if rounds:
             with torch.no_grad():
-                ray_idx, ts, te, _, _ = self._march_until_opaque(rays, t_begin, t_far, cond,
+                ray_idx, ts, te, _, _, _ = self._march_until_opaque(rays, t_begin, t_far, cond,
                                                                  TRAIN_STOP_TRANSMITTANCE)
                 full = self._march(rays, t_begin, t_far).ray_indices.numel()
                 self._choose_train_march(ray_idx.numel(), full)
@@ -232,8 +234,11 @@ class OccupancyModel(Model):
             scale = (0.5 * (ts + te) / self.config.near_gradient_distance).square().clamp_max(1.0)
             sigma = scale_gradient(sigma, scale)
             rgb = scale_gradient(rgb, scale[:, None])
-        return composite(sigma, rgb, ts, te, ray_idx, n, self.background(rays.directions),
-                         t_far, rays.z_per_t, with_median=False)
+        out = composite(sigma, rgb, ts, te, ray_idx, n, self.background(rays.directions),
+                        t_far, rays.z_per_t, with_median=False)
+        if self.label_head is not None:
+            out.positions, out.features = x, feat
+        return out
 
     def render_rays_differentiable(self, rays: Rays, cond=None) -> RenderOutput:
         """Eval-mode samples (marched in rounds from each ray's entry until it saturates, no
@@ -242,7 +247,7 @@ class OccupancyModel(Model):
         n = len(rays)
         t_near, t_far, _ = self.ray_range(rays)
         with torch.no_grad():
-            ray_idx, ts, te, _, _ = self._march_until_opaque(
+            ray_idx, ts, te, _, _, _ = self._march_until_opaque(
                 rays, t_near.detach(), t_far.detach(), cond,
                 self.config.early_stop_transmittance)
         o, d = rays.origins[ray_idx], rays.directions[ray_idx]
@@ -265,8 +270,9 @@ class OccupancyModel(Model):
         ``stop_transmittance``: later rounds are never marched.
 
         Returns packed (ray_indices, t_starts, t_ends) of the kept samples (sorted by ray, in t
-        order), their densities and (``with_color``) colours, else None: colours are evaluated
-        only for samples weighing at least ``shade_min_weight``. With ``drop_hidden``
+        order), their densities and (``with_color``) colours and (points, geometry features),
+        else None and (None, None): colours are evaluated only for samples weighing at least
+        ``shade_min_weight``. With ``drop_hidden``
         a sample is kept only when the transmittance before it is above
         ``stop_transmittance``; otherwise the last round's samples are all kept.
         """
@@ -294,27 +300,29 @@ class OccupancyModel(Model):
                 tau = (sigma * (s.t_ends - s.t_starts)).double().clamp_max(1e4)
                 log_trans.index_add_(0, gidx, -tau)
                 pieces.append((gidx[keep], s.t_starts[keep], s.t_ends[keep], sigma[keep],
-                               feat[keep] if with_color else None))
+                               feat[keep] if with_color else None,
+                               x[keep] if with_color else None))
             alive = alive & (t_cur < t_far) & (log_trans > stop)
         if not pieces:
             empty = torch.zeros(0, device=t_begin.device)
             rgb = torch.zeros(0, 3, device=t_begin.device) if with_color else None
             return (torch.zeros(0, dtype=torch.long, device=t_begin.device), empty, empty,
-                    empty, rgb)
+                    empty, rgb, (None, None))
         gidx = torch.cat([p[0] for p in pieces])
         order = torch.sort(gidx, stable=True).indices  # rounds are in t order per ray
         gidx = gidx[order]
         ts, te, sigma = (torch.cat([p[k] for p in pieces])[order] for k in (1, 2, 3))
-        rgb = None
+        rgb = feat = x = None
         if with_color:
             feat = torch.cat([p[4] for p in pieces])[order]
+            x = torch.cat([p[5] for p in pieces])[order]
             weights, _ = render_weights(sigma, ts, te, gidx, n)
             shown = torch.nonzero(weights >= self.config.shade_min_weight).squeeze(-1)
             rgb = torch.zeros(len(gidx), 3, device=t_begin.device)
             if shown.numel():
                 rgb[shown] = self.field.color(feat[shown], rays.directions[gidx[shown]],
                                               gather_rows(cond, gidx[shown])).to(rgb.dtype)
-        return gidx, ts, te, sigma, rgb
+        return gidx, ts, te, sigma, rgb, (x, feat)
 
     @torch.no_grad()
     def _render_inference(self, rays: Rays, cond=None) -> RenderOutput:
@@ -322,11 +330,14 @@ class OccupancyModel(Model):
         ``early_stop_transmittance`` (:meth:`_march_until_opaque`), composited at once."""
         n = len(rays)
         t_near, t_far, _ = self.ray_range(rays)
-        gidx, ts, te, sigma, rgb = self._march_until_opaque(
+        gidx, ts, te, sigma, rgb, (x, feat) = self._march_until_opaque(
             rays, t_near, t_far, cond, self.config.early_stop_transmittance, with_color=True,
             drop_hidden=False)
-        return composite(sigma, rgb, ts, te, gidx, n, self.background(rays.directions), t_far,
-                         rays.z_per_t)
+        out = composite(sigma, rgb, ts, te, gidx, n, self.background(rays.directions), t_far,
+                        rays.z_per_t)
+        if self.label_head is not None:
+            out.positions, out.features = x, feat
+        return out
 
     def loss(self, rays, target_rgb, generator=None, cond=None, rays_per_pixel=1):
         out = self.render_rays(rays, generator, cond)

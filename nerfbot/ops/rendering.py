@@ -178,6 +178,9 @@ class RenderOutput:
         num_samples: M.
         ray_indices, t_starts, t_ends, sigmas: (M,) the packed samples themselves (sorted by
             ray), for losses and threshold-depth queries.
+        positions, features: (M, 3) the samples' world points (metres) and (M, C) geometry
+            features, kept by renderers of models with a label head
+            (:mod:`nerfbot.models.labels`), else None.
     """
 
     rgb: torch.Tensor
@@ -191,6 +194,8 @@ class RenderOutput:
     t_starts: torch.Tensor
     t_ends: torch.Tensor
     sigmas: torch.Tensor
+    positions: Optional[torch.Tensor] = None
+    features: Optional[torch.Tensor] = None
 
 
 def composite(sigmas: torch.Tensor, rgbs: torch.Tensor, t_starts: torch.Tensor,

@@ -49,6 +49,25 @@ def colorize_depth(depth: np.ndarray, valid: Optional[np.ndarray] = None,
     return col
 
 
+def label_palette(n: int) -> np.ndarray:
+    """(n, 3) uint8 RGB colours of n classes: class 0 (background) black, the others evenly
+    spaced in hue at two brightnesses, so neighbouring indices differ."""
+    hue = (np.arange(n) * 0.618034) % 1.0
+    hsv = np.stack([hue * 179, np.full(n, 200), np.where(np.arange(n) % 2, 255, 170)], -1)
+    rgb = cv2.cvtColor(hsv.astype(np.uint8)[None], cv2.COLOR_HSV2RGB)[0]
+    rgb[0] = 0
+    return rgb
+
+
+def colorize_labels(labels: np.ndarray, n_classes: int) -> np.ndarray:
+    """(H, W) class indices (negative: unlabelled, grey) -> (H, W, 3) uint8 RGB
+    (:func:`label_palette`)."""
+    labels = np.asarray(labels)
+    out = label_palette(n_classes)[np.clip(labels, 0, n_classes - 1)]
+    out[labels < 0] = 128
+    return out
+
+
 def error_map(pred: np.ndarray, target: np.ndarray, max_error: float = 0.25) -> np.ndarray:
     """Per-pixel RGB error |pred - target| (mean over channels) as a uint8 heat map."""
     err = np.abs(np.asarray(pred, np.float32) - np.asarray(target, np.float32)).mean(-1)

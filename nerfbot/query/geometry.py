@@ -11,6 +11,7 @@ dataset's cameras put it; nothing is normalised back.
   threshold, for glass), vertex colours from the field looking at each vertex along its normal.
 - :func:`tsdf_mesh`: the rendered depth fused in a truncated signed distance volume (open3d's
   sparse :class:`VoxelBlockGrid`), coloured by the renders.
+- :func:`colour_by_labels`: any of them coloured by class instead, for runs with labels.
 
 Which depth a point cloud or TSDF takes is a :class:`DepthQuery`: expected, median or threshold
 depth (see :mod:`nerfbot.query.render`); ``nerfbot export`` takes a run's own default (threshold
@@ -34,7 +35,9 @@ from tqdm.auto import tqdm
 from nerfbot.data.writers import write_bytes_atomic
 from nerfbot.ops.cameras import Cameras, opengl_to_opencv
 from nerfbot.ops.pointcloud import depth_discontinuities, depth_to_cloud, fuse_clouds
+from nerfbot.models.labels import point_labels
 from nerfbot.query.density import default_density_threshold
+from nerfbot.query.export import label_palette
 from nerfbot.query.meshing import field_mesh, inside_bounds
 from nerfbot.query.render import DEPTH_MODES, render_image
 
@@ -175,6 +178,32 @@ def _vertex_colours(model, vertices: np.ndarray, normals: np.ndarray, cond=None,
         model.train(was_training)
     rgb = np.concatenate(out) if out else np.zeros((0, 3))
     return (rgb * 255).round().astype(np.uint8)
+
+
+def point_classes(model, points: np.ndarray) -> np.ndarray:
+    """(N,) int class index of the run's label head at world points (N, 3) (static runs;
+    ValueError for a run without labels)."""
+    if len(points) == 0:
+        return np.zeros(0, np.int64)
+    return point_labels(model, np.asarray(points, np.float32)).argmax(-1).cpu().numpy()
+
+
+def colour_by_labels(model, geometry):
+    """Recolour a point cloud (open3d) or mesh (trimesh) of the run by the class its label
+    head gives each point or vertex (:func:`~nerfbot.query.export.label_palette`); returns it.
+    ValueError for a run trained without labels."""
+    if model.label_head is None:
+        raise ValueError("this run has no label head (train it with --labels)")
+    n = model.label_head.n_classes
+    if isinstance(geometry, o3d.geometry.PointCloud):
+        classes = point_classes(model, np.asarray(geometry.points))
+        geometry.colors = o3d.utility.Vector3dVector(label_palette(n)[classes] / 255.0)
+        return geometry
+    classes = point_classes(model, np.asarray(geometry.vertices))
+    rgb = label_palette(n)[classes]
+    geometry.visual.vertex_colors = np.concatenate([rgb, np.full((len(rgb), 1), 255, np.uint8)],
+                                                   1)
+    return geometry
 
 
 def density_mesh(model, *, threshold: Optional[float] = None, resolution: int = 256,

@@ -19,6 +19,7 @@ import torch
 from scipy import ndimage
 
 from nerfbot.models.base import Model
+from nerfbot.models.labels import render_labels
 from nerfbot.ops.cameras import Cameras, Rays
 from nerfbot.ops.rendering import RenderOutput, threshold_depth
 
@@ -40,11 +41,13 @@ def as_thresholds(threshold) -> list[float]:
 
 @torch.no_grad()
 def render_rays_chunked(model: Model, rays: Rays, chunk: int = 1 << 14, cond=None,
-                        thresholds: Sequence[float] = ()) -> dict:
+                        thresholds: Sequence[float] = (), labels: bool = False) -> dict:
     """Render any number of rays in chunks (eval mode, no gradients).
 
     Args:
         thresholds: K density thresholds (1/m) for threshold depth, answered in the same pass.
+        labels: also render class probabilities, ``labels`` (R, C), from the model's label
+            head (:func:`~nerfbot.models.labels.render_labels`; ValueError without one).
 
     Returns:
         A dict of float32 tensors: rgb (R, 3), opacity, depth (expected ray distance), z_depth,
@@ -53,12 +56,16 @@ def render_rays_chunked(model: Model, rays: Rays, chunk: int = 1 << 14, cond=Non
         reaches the threshold.
     """
     thresholds = as_thresholds(list(thresholds))
+    if labels and model.label_head is None:
+        raise ValueError("this run has no label head (train it with --labels)")
     was_training = model.training
     if was_training:  # train() walks every submodule: skip it when already in eval mode
         model.eval()
     parts: dict[str, list] = {k: [] for k in _IMAGE_KEYS}
     if thresholds:
         parts["threshold_depth"], parts["threshold_z_depth"] = [], []
+    if labels:
+        parts["labels"] = []
     try:
         for i in range(0, len(rays), chunk):
             sub = rays[i:i + chunk]
@@ -73,6 +80,8 @@ def render_rays_chunked(model: Model, rays: Rays, chunk: int = 1 << 14, cond=Non
                                  for m in thresholds])
                 parts["threshold_depth"].append(t)
                 parts["threshold_z_depth"].append(t * sub.z_per_t[None])
+            if labels:
+                parts["labels"].append(render_labels(model.label_head, out))
     finally:
         if was_training:
             model.train()
@@ -86,11 +95,12 @@ def render_rays_chunked(model: Model, rays: Rays, chunk: int = 1 << 14, cond=Non
 def render_image(model: Model, cameras: Cameras, index: int, downscale: int = 1,
                  chunk: int = 1 << 14, cond=None, thresholds: Sequence[float] = (),
                  supersample: Optional[int] = None,
-                 supersample_tolerance: Optional[float] = None) -> dict:
+                 supersample_tolerance: Optional[float] = None, labels: bool = False) -> dict:
     """Render camera ``index`` as numpy images: rgb (H, W, 3) in [0, 1], and (H, W) opacity,
     depth (ray distance, m), z_depth (m), median_depth (ray distance, m), median_z_depth (m);
     with ``thresholds`` (K values, 1/m) also threshold_depth / threshold_z_depth (K, H, W),
-    NaN where invalid.
+    NaN where invalid; with ``labels`` also labels (H, W, C) class probabilities of the
+    model's label head, from the pixel centres.
 
     ``supersample`` S (None: the model's :attr:`~nerfbot.models.base.Model.supersample`): rgb and
     opacity are the means of S x S rays through each pixel (:meth:`Cameras.rays`), as the
@@ -105,7 +115,8 @@ def render_image(model: Model, cameras: Cameras, index: int, downscale: int = 1,
         else float(supersample_tolerance)
     h = int(cameras.height[index]) // downscale
     w = int(cameras.width[index]) // downscale
-    out = _render_camera_rays(model, cameras.rays(index, downscale), chunk, cond, thresholds)
+    out = _render_camera_rays(model, cameras.rays(index, downscale), chunk, cond, thresholds,
+                              labels)
     if s > 1:
         fine_rays = cameras.rays(index, downscale, s)
         if tol > 0:
@@ -129,6 +140,8 @@ def render_image(model: Model, cameras: Cameras, index: int, downscale: int = 1,
     for k in ("threshold_depth", "threshold_z_depth"):
         if k in img:
             result[k] = img[k].reshape(-1, h, w)
+    if labels:
+        result["labels"] = img["labels"].reshape(h, w, -1)
     return result
 
 
@@ -146,11 +159,13 @@ def edge_pixels(rgb: np.ndarray, tolerance: float) -> np.ndarray:
     return np.flatnonzero(edge)
 
 
-def _render_camera_rays(model: Model, rays: Rays, chunk: int, cond, thresholds) -> dict:
+def _render_camera_rays(model: Model, rays: Rays, chunk: int, cond, thresholds,
+                        labels: bool = False) -> dict:
     """:func:`render_rays_chunked` of one camera's rays; ``cond`` (D,) is that camera's."""
     if cond is not None:
         cond = torch.as_tensor(cond, dtype=torch.float32).reshape(1, -1).expand(len(rays), -1)
-    return render_rays_chunked(model, rays.to(model.aabb.device), chunk, cond, thresholds)
+    return render_rays_chunked(model, rays.to(model.aabb.device), chunk, cond, thresholds,
+                               labels)
 
 
 def sweep_conditions(conditioning, what: str, n: int, base: Optional[Sequence[float]] = None

@@ -51,6 +51,18 @@ class TrainConfig:
     sparse_depth_rays: int = 256
     """Keypoint pixels per step for the sparse depth loss; they replace as many random pixels
     of the batch (their colour is trained too)."""
+    labels: bool = False
+    """Train Semantic-NeRF's label branch (:mod:`nerfbot.models.labels`) on the capture's
+    segmentation, classes from its manifest (:func:`nerfbot.data.labels.label_classes`)."""
+    label_weight: float = 0.04
+    """Weight of the labels' cross-entropy against the photometric MSE (Semantic-NeRF's 0.04)."""
+    label_clicks: Optional[int] = None
+    """iLabel's setting: train labels from this many labelled pixels per class over all the
+    training frames (:func:`nerfbot.data.labels.click_maps`) instead of full label maps."""
+    label_rays: int = 1024
+    """Pixels per step whose labels are trained: the first of the batch's random pixels with
+    full label maps; with ``label_clicks``, pixels drawn from the clicks, which replace as
+    many random pixels of the batch (their colour is trained too)."""
     device: str = "cpu"
     """torch device; the fast kernels are CPU kernels, other devices use the torch twins
     (``NERFBOT_KERNELS=torch`` forces the twins on the CPU too: :mod:`nerfbot.kernels`)."""
@@ -81,6 +93,15 @@ class TrainConfig:
                 or self.sparse_depth_rays < 1:
             raise ValueError(f"sparse_depth_rays must be an integer >= 1, got "
                              f"{self.sparse_depth_rays!r}")
+        if not 0.0 <= self.label_weight < math.inf:
+            raise ValueError(f"label_weight must be >= 0 and finite, got {self.label_weight}")
+        for name in ("label_clicks", "label_rays"):
+            value = getattr(self, name)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, int)
+                                      or value < 1):
+                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        if self.label_clicks is not None and not self.labels:
+            raise ValueError("label_clicks needs labels")
         if not self.checkpoint_every_seconds >= 0:
             raise ValueError(f"checkpoint_every_seconds must be >= 0, got "
                              f"{self.checkpoint_every_seconds}")

@@ -13,8 +13,10 @@ import numpy as np
 from nerfbot.data.conditioning import Conditioning, dataset_conditioning
 from nerfbot.data.dataset import Dataset
 from nerfbot.data.identity import dataset_identity, identity_mismatch
+from nerfbot.data.labels import LabelClasses, label_classes
 from nerfbot.methods import build_model
 from nerfbot.models.base import Model, resize_like_state_dict
+from nerfbot.models.labels import attach_label_head
 from nerfbot.train.checkpoints import (CHECKPOINT, CheckpointError,
                                        load_checkpoint, plain)
 from nerfbot.train.config import TrainConfig
@@ -28,15 +30,25 @@ def model_spec(config: TrainConfig, dataset: Dataset) -> dict:
     the identity of the dataset it is trained on
     (:func:`nerfbot.data.identity.dataset_identity`)."""
     background = config.background if config.background is not None else dataset.background
-    return {"method": config.method, "aabb": np.asarray(dataset.aabb, float).tolist(),
+    spec = {"method": config.method, "aabb": np.asarray(dataset.aabb, float).tolist(),
             "background": background, "options": dict(config.options), "seed": config.seed,
             "conditioning": dataset_conditioning(dataset).to_dict(),
             "dataset": dataset_identity(dataset)}
+    if config.labels:
+        if spec["conditioning"]["kind"] != "static":
+            raise ValueError(f"{dataset.root}: labels are for static scenes (this capture is "
+                             f"conditioned on {spec['conditioning']['kind']})")
+        spec["labels"] = label_classes(dataset.manifest, str(dataset.root)).to_dict()
+    return spec
 
 
 def build_from_spec(spec: dict, device="cpu") -> Model:
-    return build_model(spec["method"], spec["aabb"], spec["background"], spec["options"],
-                       spec["seed"], Conditioning.from_dict(spec.get("conditioning"))).to(device)
+    """The model of a run's spec, with its label head when the run was trained with labels."""
+    model = build_model(spec["method"], spec["aabb"], spec["background"], spec["options"],
+                        spec["seed"], Conditioning.from_dict(spec.get("conditioning")))
+    if spec.get("labels"):
+        attach_label_head(model, LabelClasses.from_dict(spec["labels"]), spec["seed"])
+    return model.to(device)
 
 
 #: Relative tolerance of the bounds comparison on resume (float64 JSON round trips).
@@ -106,6 +118,12 @@ def spec_differences(stored: dict, requested: dict, dataset: Dataset) -> list[st
         if shown[0] == shown[1]:
             shown[0] += " (other ranges or joint kinematics)"
         out.append(f"conditioning {shown[0]}, but the run was made with {shown[1]}")
+    if bool(requested.get("labels")) != bool(stored.get("labels")):
+        out.append(f"labels {'on' if requested.get('labels') else 'off'}, but the run was made "
+                   f"with them {'on' if stored.get('labels') else 'off'}")
+    elif requested.get("labels") and canonical_text(requested["labels"]) != \
+            canonical_text(stored["labels"]):
+        out.append("other label classes than the run's")
     if requested["seed"] != stored["seed"]:
         out.append(f"seed {requested['seed']}, but the run was made with {stored['seed']}")
     other = identity_mismatch(stored.get("dataset"), dataset)

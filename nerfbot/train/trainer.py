@@ -17,11 +17,13 @@ from tqdm.auto import tqdm
 
 from nerfbot.data.conditioning import Conditioning, frame_conditions
 from nerfbot.data.dataset import Dataset
+from nerfbot.data.labels import LabelClasses, click_maps, label_maps
 from nerfbot.data.pixels import PixelBank
 from nerfbot.data.run_dataset import run_data_fields
 from nerfbot.data.writers import write_json_atomic
 from nerfbot.methods import get_method
 from nerfbot.models.base import Model, pixel_mean
+from nerfbot.models.labels import label_loss, render_labels
 from nerfbot.ops.cameras import Rays
 from nerfbot.ops.losses import keypoint_depth_loss
 from nerfbot.ops.rendering import RenderOutput
@@ -57,8 +59,18 @@ def warm_up_step(model: Model, bank: "PixelBank", step: int, progress: float) ->
     loss.backward()
 
 
+def sample_span(out: RenderOutput, first_ray: int, stop_ray: int) -> slice:
+    """The packed samples of rays ``first_ray`` up to ``stop_ray`` (exclusive) of a render
+    output (its samples are sorted by ray)."""
+    index = out.ray_indices
+    bounds = torch.tensor([first_ray, stop_ray], dtype=index.dtype, device=index.device)
+    lo, hi = (int(v) for v in torch.searchsorted(index, bounds))
+    return slice(lo, hi)
+
+
 def batch_loss(model: Model, bank: "PixelBank", n_rays: int, generator: torch.Generator,
-               progress: float, keypoints: int = 0, sparse_depth_weight: float = 0.0
+               progress: float, keypoints: int = 0, sparse_depth_weight: float = 0.0,
+               label_weight: float = 0.0, label_pixels: int = 0
                ) -> tuple[torch.Tensor, RenderOutput, int]:
     """The loss of a batch of about ``n_rays`` random training rays at ``progress`` of the
     budget: S x S rays per pixel (S = ``model.training_supersample(progress)``), whose
@@ -68,32 +80,54 @@ def batch_loss(model: Model, bank: "PixelBank", n_rays: int, generator: torch.Ge
     With ``keypoints`` > 0, that many pixels holding sparse-depth keypoints
     (:meth:`PixelBank.sample_keypoints`) join the batch, as DS-NeRF trains: their colour
     counts like any pixel's, and their rays add ``sparse_depth_weight`` x
-    :func:`~nerfbot.ops.losses.keypoint_depth_loss`. The pixels drawn are in
-    ``bank.last_pixels`` (the random ones; keypoint pixels are not, so dense depth supervision
-    sees only those). Returns the loss, the rays' render output (random pixels' rays first)
-    and S."""
+    :func:`~nerfbot.ops.losses.keypoint_depth_loss`.
+
+    With ``label_weight`` > 0 (a model with a label head, a bank with labels:
+    :meth:`PixelBank.load_labels`) the batch adds ``label_weight`` x the cross-entropy of the
+    rendered class probabilities (:func:`~nerfbot.models.labels.render_labels`) of
+    ``label_pixels`` pixels: the first random ones when every pixel is labelled, else pixels
+    drawn from the clicks (:meth:`PixelBank.sample_clicks`; no more than there are clicks,
+    nor than a quarter of the batch's pixels), which join the batch like keypoints.
+
+    The random pixels drawn are in ``bank.last_pixels`` (keypoint and click pixels are not, so
+    dense depth supervision sees only those). Returns the loss, the rays' render output (the
+    random pixels' rays first, then keypoints', then clicks') and S."""
     s = model.training_supersample(progress)
     k = s * s
-    n_pixels = max(1, n_rays // k - keypoints)
+    clicks = 0
+    if bank.clicks is not None and label_weight > 0:  # at most a quarter of the pixels
+        clicks = max(1, min(label_pixels, len(bank.clicks), n_rays // k // 4))
+    n_pixels = max(1, n_rays // k - keypoints - clicks)
     rays, target, slot = bank.sample(n_pixels, generator, s)
-    depth = None
+    parts = [(rays, target, slot)]
+    depth = click_labels = None
     if keypoints:
         krays, kcolour, kslot, kt, ksigma = bank.sample_keypoints(keypoints, generator, s)
-        rays = Rays.cat([rays, krays])
-        target, slot = torch.cat([target, kcolour]), torch.cat([slot, kslot])
+        parts.append((krays, kcolour, kslot))
         depth = kt, ksigma
+    if clicks:
+        crays, ccolour, cslot, click_labels = bank.sample_clicks(clicks, generator, s)
+        parts.append((crays, ccolour, cslot))
+    if len(parts) > 1:
+        rays = Rays.cat([p[0] for p in parts])
+        target, slot = torch.cat([p[1] for p in parts]), torch.cat([p[2] for p in parts])
     cond = None if bank.conds is None else bank.conds[slot].repeat_interleave(k, 0)
     loss, out = model.loss(rays, target, generator, cond, rays_per_pixel=k)
     if depth is not None:
-        # the keypoint rays come last, and packed samples are sorted by ray: their samples
-        # are the tail of the batch's
         first = n_pixels * k
-        index = out.ray_indices
-        start = int(torch.searchsorted(index, torch.tensor(first, dtype=index.dtype,
-                                                           device=index.device)))
+        span = sample_span(out, first, first + keypoints * k)
         loss = loss + sparse_depth_weight * keypoint_depth_loss(
-            out.weights[start:], out.t_starts[start:], out.t_ends[start:],
-            out.ray_indices[start:] - first, *depth)
+            out.weights[span], out.t_starts[span], out.t_ends[span],
+            out.ray_indices[span] - first, *depth)
+    if label_weight > 0:
+        if click_labels is None:
+            m = min(n_pixels, label_pixels)
+            labelled, classes = slice(0, m * k), bank.labels[bank.last_pixels[:m]]
+        else:
+            first = (n_pixels + keypoints) * k
+            labelled, classes = slice(first, first + clicks * k), click_labels
+        probs = pixel_mean(render_labels(model.label_head, out, labelled), k)
+        loss = loss + label_weight * label_loss(probs, classes)
     return loss, out, s
 
 
@@ -125,6 +159,8 @@ class Trainer:
         self.model.init_mean_color(self.bank.mean_color())
         if config.depth_weight > 0:
             self.bank.load_depths()
+        if config.labels:
+            self._load_labels()
         if config.sparse_depth_weight > 0:
             count = self.bank.load_keypoints()
             log.info("sparse depth supervision: %d keypoints, %d keypoint pixels per step",
@@ -138,6 +174,18 @@ class Trainer:
         self.last_samples: Optional[int] = None
         self.curve: list[dict] = []
         self.evaluate_fn = evaluate_fn
+
+    def _load_labels(self) -> None:
+        """Give the pixel bank the training frames' label maps (full, or ``label_clicks``
+        per class)."""
+        c = self.config
+        classes = LabelClasses.from_dict(self.spec["labels"])
+        maps = label_maps(self.dataset, classes, self.dataset.indices("train"))
+        if c.label_clicks is not None:
+            maps = click_maps(maps, c.label_clicks, c.seed)
+        count = self.bank.load_labels(maps, sparse=c.label_clicks is not None)
+        log.info("labels: %d classes, %d labelled pixels%s", len(classes), count,
+                 f" ({c.label_clicks} clicks per class)" if c.label_clicks else "")
 
     def _fused_adam(self) -> bool:
         """Whether torch's fused Adam kernel can update every parameter (floating point, on
@@ -298,7 +346,8 @@ class Trainer:
                 keypoints = c.sparse_depth_rays if c.sparse_depth_weight > 0 else 0
                 loss, out, supersample = batch_loss(
                     self.model, self.bank, self.n_rays, self.generator, progress,
-                    keypoints, c.sparse_depth_weight)
+                    keypoints, c.sparse_depth_weight,
+                    c.label_weight if c.labels else 0.0, c.label_rays)
                 if c.depth_weight > 0:
                     loss = loss + c.depth_weight * self._depth_loss(out, supersample)
                 self.optimizer.zero_grad(set_to_none=True)
