@@ -61,12 +61,13 @@ def _stored_clean(nb) -> list[str]:
             and (c.get("outputs") or c.get("execution_count") is not None)]
 
 
-def _execute(path: Path, work: Path):
-    """Execute notebook ``path`` at the tiny budget in ``work``; (executed notebook, results)."""
+def _execute(path: Path, work: Path, **budget: str):
+    """Execute notebook ``path`` at the tiny budget in ``work`` (``budget``: environment values
+    that replace :data:`TINY`'s); (executed notebook, results)."""
     out = work / "out"
     nb = nbformat.read(path, as_version=4)
     with pytest.MonkeyPatch.context() as mp:  # the kernel inherits this environment
-        for key, value in TINY.items():
+        for key, value in {**TINY, **budget}.items():
             mp.setenv(key, value)
         mp.setenv("NERFBOT_NB_OUT", str(out))
         mp.setenv("MPLBACKEND", "module://matplotlib_inline.backend_inline")
@@ -127,8 +128,10 @@ def poses(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def exports(tmp_path_factory):
-    """The exports-and-labels tutorial at the tiny budget."""
-    return _execute(EXPORTS, tmp_path_factory.mktemp("nb_exports"))
+    """The exports-and-labels tutorial at a small budget: objects of a few pixels at 32 px
+    get no label in 60 steps, so 48 px, 16 views and 200 steps."""
+    return _execute(EXPORTS, tmp_path_factory.mktemp("nb_exports"), NERFBOT_NB_SIZE="48",
+                    NERFBOT_NB_VIEWS="16", NERFBOT_NB_STEPS="200")
 
 
 @pytest.mark.parametrize("path", [QUICKSTART, GLASS, ARTICULATED, VARIANTS, POSES, EXPORTS],
@@ -265,18 +268,20 @@ def test_poses_tutorial_recovers_the_cameras_and_trains_on_them(poses):
     assert r["few_depth_mae_sparse_depth_m"] < r["few_depth_mae_rgb_m"]
 
 
-# The exports tutorial at its tiny budget (32 px, 12 + 4 views, 60 steps): observed (see the
-# test) label mIoU with full label maps and with 20 clicks per class, the exports' F-scores at
-# 1 cm and where the labels put the blue can.
-EXPORTS_MIN_MIOU = 0.3
-EXPORTS_MAX_LOCATED_ERROR_M = 0.1
+# The exports tutorial at its small budget (48 px, 16 + 4 views, 200 steps of 2^15 samples):
+# observed label mIoU 0.54 with full label maps (background 0.99, table 0.89, objects 0-0.79),
+# 0.38 with 20 clicks per class; the blue can located 1.7 cm from where it stands. A head that
+# learnt nothing labels everything background (mIoU ~0.1) and locates nothing.
+EXPORTS_MIN_MIOU = 0.35
+EXPORTS_MIN_CLICK_MIOU = 0.2
+EXPORTS_MAX_LOCATED_ERROR_M = 0.05
 
 
 def test_exports_tutorial_labels_exports_and_locates(exports):
     nb, r = exports
     assert len(_figures(nb)) >= 3   # classes, label renders, 3D exports
     assert r["label_miou"] >= EXPORTS_MIN_MIOU
-    assert math.isfinite(r["click_miou"])
+    assert r["click_miou"] >= EXPORTS_MIN_CLICK_MIOU
     assert r["cloud_points"] > 100 and r["tsdf_faces"] > 100
     for name, f in r["fscore"].items():
         assert 0.0 < f <= 1.0, name

@@ -28,6 +28,8 @@ LABEL_HIDDEN = 64
 #: Frequencies of the label head's positional encoding: low, so that labels vary smoothly in
 #: space and a few labelled pixels spread over their object; edges come from the features.
 LABEL_FREQS = 2
+#: Initial background-class logit of an empty ray's rest transmittance.
+BACKGROUND_LOGIT = 4.0
 
 
 class LabelHead(nn.Module):
@@ -38,9 +40,13 @@ class LabelHead(nn.Module):
     one label from every side): an MLP (two hidden ReLU layers) over a low-frequency
     encoding of the position in the field's cube and the field's geometry features. The
     features enter detached, so labels never change the colour or density the field learns
-    from the images; through them a label spreads to what looks and is shaped alike. The rest
-    of a ray's transmittance goes to the :data:`~nerfbot.data.labels.BACKGROUND` class (what
-    the learned background shows: sky).
+    from the images; through them a label spreads to what looks and is shaped alike.
+
+    Logits are composited along a ray as in Semantic-NeRF, and the rest of a ray's
+    transmittance carries ``background_logits`` (K,), learned, starting in favour of the
+    :data:`~nerfbot.data.labels.BACKGROUND` class (what the learned background shows: sky).
+    Because logits are unbounded, a surface the field has left half transparent can still
+    outvote the background where the labels say it is there.
     """
 
     def __init__(self, normalize: nn.Module, feature_dim: int, classes: LabelClasses,
@@ -54,6 +60,9 @@ class LabelHead(nn.Module):
         self.normalize = normalize
         self.encoding = FrequencyEncoding(3, n_freqs)
         self.net = mlp(self.encoding.out_dim + feature_dim, hidden, 2, self.n_classes)
+        start = torch.zeros(self.n_classes)
+        start[self.background_class] = BACKGROUND_LOGIT
+        self.background_logits = nn.Parameter(start)
 
     def forward(self, x: torch.Tensor, feat: torch.Tensor) -> torch.Tensor:
         """x: (M, 3) world points, feat: (M, C) -> (M, K) logits."""
@@ -67,8 +76,9 @@ class LabelHead(nn.Module):
 
 def render_labels(head: LabelHead, out: RenderOutput, rays: Optional[slice] = None
                   ) -> torch.Tensor:
-    """(R, K) class probabilities of rendered rays: sum_i w_i p_i over each ray's samples,
-    plus its remaining transmittance on the background class. Each row sums to 1.
+    """(R, K) class probabilities of rendered rays: the softmax of sum_i w_i s_i over each
+    ray's sample logits s_i plus its remaining transmittance times the head's
+    ``background_logits``. Each row sums to 1; an empty ray shows softmax(background_logits).
 
     The weights w_i enter detached: a label loss trains the head and the features under it
     but never moves density, so sparse or wrong labels cannot pull surfaces towards the
@@ -83,17 +93,16 @@ def render_labels(head: LabelHead, out: RenderOutput, rays: Optional[slice] = No
     bounds = torch.tensor([start, stop], dtype=index.dtype, device=index.device)
     lo, hi = (int(v) for v in torch.searchsorted(index, bounds))
     if hi == lo:
-        probs = opacity.new_zeros(n, head.n_classes)
+        logits = opacity.new_zeros(n, head.n_classes)
     elif out.features is None or out.positions is None:
         raise ValueError("this renderer keeps no sample features: labels need a method "
                          "marched over an occupancy grid (ngp, plenoxels, tensorf, ...) or nerf")
     else:
-        probs = accumulate(out.weights[lo:hi].detach(),
-                           head.probabilities(out.positions[lo:hi], out.features[lo:hi]),
-                           index[lo:hi] - start, n).float()
+        logits = accumulate(out.weights[lo:hi].detach(),
+                            head(out.positions[lo:hi], out.features[lo:hi]),
+                            index[lo:hi] - start, n).float()
     rest = (1.0 - opacity.detach()).clamp_min(0.0)
-    onehot = F.one_hot(torch.tensor(head.background_class), head.n_classes).to(probs)
-    return probs + rest[:, None] * onehot
+    return F.softmax(logits + rest[:, None] * head.background_logits.float(), dim=-1)
 
 
 def label_loss(probs: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
