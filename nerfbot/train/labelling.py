@@ -36,15 +36,14 @@ log = logging.getLogger(__name__)
 @dataclass
 class LabelTrainConfig:
     steps: int = 1000
-    """Adam steps of the head."""
+    """AdamW steps of the head."""
     rays: int = 4096
     """Labelled pixels per step (with clicks: at most as many as there are clicks)."""
     lr: float = 5e-3
-    """Adam learning rate of the head."""
+    """AdamW learning rate of the head."""
     weight_decay: float = 1.0
     """AdamW's decoupled weight decay on the head: keeps it smooth where no pixel is labelled,
-    which matters with a few clicks (20 per class on the tabletop: mIoU 0.48 without, 0.56
-    with; full label maps are unaffected)."""
+    which matters with a few clicks."""
     clicks: Optional[int] = None
     """iLabel's setting: this many labelled pixels per class over the training frames
     (:func:`~nerfbot.data.labels.click_maps`); None: full label maps."""
