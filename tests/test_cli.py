@@ -86,6 +86,57 @@ def test_render_orbit_video_and_test_images(tiny_run, tmp_path):
     assert sorted(p.name for p in folder.glob("rgb_*.png")) == [f"rgb_{i:04d}.png" for i in range(4)]
 
 
+def test_render_along_a_pose_file_writes_videos_browsers_play(tiny_run, tmp_path, capsys):
+    """--poses: the keyframes of a pose file (capture --poses' format), interpolated to
+    --frames views; H.264 .mp4 / VP9 .webm / .gif; the first and last frames are the keyframes'
+    views; an unknown suffix and conflicting flags are refused."""
+    from nerfbot.query.render import render_image
+    from nerfbot.query.video import video_info
+    from nerfbot.ops.cameras import Cameras
+    from nerfbot.train.runs import load_model
+
+    keys = tmp_path / "path.json"
+    keys.write_text(json.dumps({"poses": [
+        {"eye": [1.2, -0.8, 1.3], "target": [0.0, 0.0, 0.75]},
+        {"eye": [1.0, 0.9, 1.1], "target": [0.0, 0.0, 0.75]},
+        {"eye": [-0.9, 1.0, 1.4], "target": [0.0, 0.0, 0.75]}]}))
+    for suffix, codec in ((".mp4", "h264"), (".webm", "vp9"), (".gif", "gif")):
+        video = tmp_path / f"path{suffix}"
+        assert main(["render", str(tiny_run), "--poses", str(keys), "--frames", "7", "--out",
+                     str(video), "--no-progress"]) == 0
+        info = video_info(video)
+        assert info["codec"] == codec and info["frames"] == 7, info
+    assert "the path of" in capsys.readouterr().out
+    folder = tmp_path / "frames"
+    assert main(["render", str(tiny_run), "--poses", str(keys), "--frames", "5", "--out",
+                 str(folder), "--no-progress"]) == 0
+    model, _ = load_model(tiny_run)
+    from sims.rigs import read_pose_file
+    first = read_pose_file(keys)[0]
+    ds = load_dataset(json.loads((tiny_run / "config.json").read_text())["data"])
+    fy = ds.intrinsics[0, 1]
+    fov = float(np.degrees(2 * np.arctan(0.5 * ds.sizes[0, 1] / fy)))
+    truth = render_image(model, Cameras.pinhole(first[None], fov, 32, 32), 0)
+    np.testing.assert_allclose(np.load(folder / "depth_0000.npy"), truth["z_depth"], atol=1e-4)
+    assert len(list(folder.glob("rgb_*.png"))) == 5
+    capsys.readouterr()
+    assert main(["render", str(tiny_run), "--poses", str(keys), "--out",
+                 str(tmp_path / "v.mov"), "--no-progress"]) == 2
+    assert ".mp4, .webm, .gif" in capsys.readouterr().err
+    assert main(["render", str(tiny_run), "--poses", str(keys), "--path", "test", "--out",
+                 str(tmp_path / "v.mp4"), "--no-progress"]) == 2
+    assert "give one camera path" in capsys.readouterr().err
+    assert main(["render", str(tiny_run), "--poses", str(tmp_path / "none.json"), "--out",
+                 str(tmp_path / "v.mp4"), "--no-progress"]) == 2
+    assert "none.json" in capsys.readouterr().err
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"poses": [[[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]], "x"]}))
+    assert main(["render", str(tiny_run), "--poses", str(bad), "--out",
+                 str(tmp_path / "v.mp4"), "--no-progress"]) == 2
+    assert "bad.json: poses[1]" in capsys.readouterr().err
+    assert not (tmp_path / "v.mp4").exists() and not (tmp_path / "v.mov").exists()
+
+
 def test_render_depth_modes_and_the_auto_runs_default(tiny_run, tmp_path, capsys):
     """--depth-mode picks the depth written (.npy z-depth, NaN where a threshold is never
     reached); a run whose auto.json asks for threshold depth (glass) renders it by default."""

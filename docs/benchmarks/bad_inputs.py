@@ -474,10 +474,10 @@ def _(sb):
     return ["render", "run", "--out", "out.mp4", "--fps", "0"]
 
 
-@case("R39", R, "render --out out.gif (an extension it cannot write)", needs=("data", "run"),
-      mentions=("gif",), outputs=("out.gif",))
+@case("R39", R, "render --out out.mov (an extension it cannot write)", needs=("data", "run"),
+      mentions=("mov",), outputs=("out.mov",))
 def _(sb):
-    return ["render", "run", "--out", "out.gif", "--frames", "2", "--no-progress"]
+    return ["render", "run", "--out", "out.mov", "--frames", "2", "--no-progress"]
 
 
 @case("R40", R, "render --time 2 (outside [0, 1])", needs=("data", "run"), mentions=("time",))

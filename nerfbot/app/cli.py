@@ -454,12 +454,11 @@ def cmd_estimate_joints(args) -> int:
     return 0
 
 
-def _orbit_cameras(model, frames: int, size, ds):
-    """An orbit around the scene, framed like the training cameras of the dataset ``ds`` when
-    it is known (not None)."""
+def _view_intrinsics(model, size, ds) -> tuple:
+    """(vertical fov in degrees, width, height, target (3,), radius, elevation in degrees) of
+    rendered views that are framed like the training cameras of the dataset ``ds`` when it is
+    known (not None), else from the run's bounds; ``size`` (``--size``) overrides the size."""
     import numpy as np
-
-    from nerfbot.ops.cameras import Cameras, orbit_poses
 
     aabb = model.aabb.cpu().numpy()
     target = 0.5 * (aabb[0] + aabb[1])
@@ -475,7 +474,45 @@ def _orbit_cameras(model, frames: int, size, ds):
         fov = float(np.degrees(2 * np.arctan(0.5 * height / ds.intrinsics[idx[0], 1])))
     if size:
         width, height = (size[0], size[0]) if len(size) == 1 else size[:2]
+    return fov, width, height, target, radius, elevation
+
+
+def _orbit_cameras(model, frames: int, size, ds):
+    """An orbit around the scene, framed like the training cameras of the dataset ``ds`` when
+    it is known (not None)."""
+    from nerfbot.ops.cameras import Cameras, orbit_poses
+
+    fov, width, height, target, radius, elevation = _view_intrinsics(model, size, ds)
     return Cameras.pinhole(orbit_poses(target, radius, elevation, frames), fov, width, height)
+
+
+def _path_cameras(path: Path, frames: int, model, size, ds):
+    """Cameras along the keyframes of pose file ``path`` (the format ``nerfbot capture
+    --poses`` reads: :func:`sims.rigs.read_pose_file`), ``frames`` of them, interpolated
+    (:func:`nerfbot.ops.camera_path.interpolate_poses`); intrinsics as the orbit's."""
+    import numpy as np
+
+    from nerfbot.ops.camera_path import interpolate_poses
+    from nerfbot.ops.cameras import Cameras
+    from sims.rigs import read_pose_file
+
+    try:
+        keys = read_pose_file(path)
+    except FileNotFoundError as err:
+        raise UsageError(f"--poses: {err}") from err
+    except ValueError as err:
+        raise UsageError(f"--poses {err}") from err
+    if isinstance(keys, dict):
+        raise UsageError(f"--poses {path}: a camera path is one list of poses (a list, or "
+                         f"'poses' / 'frames'), not per-split lists {sorted(keys)}")
+    if not keys:
+        raise UsageError(f"--poses {path}: the file holds no pose")
+    try:
+        poses = interpolate_poses(np.stack(keys), frames)
+    except ValueError as err:
+        raise UsageError(f"--poses {path}: {err}") from err
+    fov, width, height, *_ = _view_intrinsics(model, size, ds)
+    return Cameras.pinhole(poses, fov, width, height)
 
 
 def _render_dataset(args, run: Path, info, needed: bool):
@@ -518,6 +555,8 @@ def _render_plan(args, model, info, ds):
     fixed = None
     if args.time is not None or args.joints:
         fixed = conditioning.vector(args.time, args.joints)
+    if args.sweep and args.poses:
+        raise UsageError("--sweep and --poses: a sweep orbits the scene; give one of them")
     if args.sweep:
         if conditioning.is_static:
             raise ValueError(f"{args.run}: --sweep needs a time- or joint-conditioned run; this "
@@ -526,8 +565,9 @@ def _render_plan(args, model, info, ds):
         views = max(args.sweep_views, 1)
         cams = _orbit_cameras(model, views, args.size, ds)
         return cams[torch.as_tensor(np.arange(len(conds)) * views // len(conds))], conds
-    if args.path == "orbit":
-        cams = _orbit_cameras(model, args.frames, args.size, ds)
+    if args.path == "orbit" or args.poses:
+        cams = _path_cameras(args.poses, args.frames, model, args.size, ds) if args.poses \
+            else _orbit_cameras(model, args.frames, args.size, ds)
         if fixed is None and not conditioning.is_static:
             fixed = conditioning.vector(0.0, {}) if conditioning.kind == "time" else \
                 conditioning.vector(None, {})
@@ -572,16 +612,13 @@ def _depth_of(img: dict, mode: str):
 
 
 #: The video files ``nerfbot render --out`` writes; any other --out is a folder of images.
-VIDEO_SUFFIXES = (".mp4", ".avi")
-
-
 def cmd_render(args) -> int:
     import numpy as np
 
     from nerfbot.data.outputs import check_output_file, check_output_folder
-    from nerfbot.query.export import (colorize_depth, colorize_labels, save_image, to_uint8,
-                                      write_video)
+    from nerfbot.query.export import colorize_depth, colorize_labels, save_image, to_uint8
     from nerfbot.query.render import render_image
+    from nerfbot.query.video import VIDEO_SUFFIXES, write_video
     from nerfbot.train.runs import load_model
     from tqdm.auto import tqdm
 
@@ -595,9 +632,12 @@ def cmd_render(args) -> int:
     folder = None if video else check_output_folder(out, "render", overwrite=args.overwrite)
     if video:
         check_output_file(out, overwrite=args.overwrite)
+    if args.poses and args.path != "orbit":
+        raise UsageError(f"--poses and --path {args.path}: give one camera path")
     mode, threshold, source = _render_depth_query(args, run)
     model, info = load_model(run, args.device)
-    ds = _render_dataset(args, run, info, needed=args.path != "orbit" and not args.sweep)
+    ds = _render_dataset(args, run, info,
+                         needed=args.path != "orbit" and not args.sweep and not args.poses)
     cams, conds = _render_plan(args, model, info, ds)
     thresholds = [threshold] if mode == "threshold" else []
     labels = model.label_head is not None
@@ -633,7 +673,8 @@ def cmd_render(args) -> int:
                     classes = img["labels"].argmax(-1).astype(np.uint8)
                     save_image(out / f"labels_{i:04d}.png", colorize_labels(classes, n_classes))
                     np.save(out / f"labels_{i:04d}.npy", classes)
-    what = f"a {args.sweep} sweep" if args.sweep else f"{args.path} views"
+    what = f"a {args.sweep} sweep" if args.sweep else \
+        (f"the path of {args.poses}" if args.poses else f"{args.path} views")
     depth = mode + (f" (m = {threshold:g} /m)" if threshold is not None else "")
     classes = f"; labels: {', '.join(model.label_head.classes.names)}" if labels else ""
     print(f"wrote {len(cams)} images of {what} to {out}; depth: {depth}, from {source}{classes}")
@@ -1062,9 +1103,12 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
     p = sub.add_parser("render", help="render views of a run: a video or images")
     p.add_argument("run", type=Path)
     p.add_argument("--path", default="orbit", choices=("orbit", "test", "train"))
+    p.add_argument("--poses", type=Path, default=None, metavar="FILE",
+                   help="render along the keyframes of a pose file (the format of capture "
+                        "--poses): --frames views, centres on a spline, rotations by slerp")
     p.add_argument("--out", required=True, type=Path,
-                   help="video file (.mp4/.avi) or a folder for rgb/depth/opacity images "
-                        "(new or empty)")
+                   help="video file (.mp4 H.264, .webm VP9, .gif) or a folder for "
+                        "rgb/depth/opacity images (new or empty)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing video file, or the images of an earlier render "
                         "folder")
@@ -1072,7 +1116,7 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
                    help="what a video shows (labels: runs trained with --labels; image "
                         "folders get labels_*.png / .npy class indices for them always)")
     p.add_argument("--frames", type=_positive_int, default=60,
-                   help="orbit frames, or images of a --sweep (default 60)")
+                   help="orbit or --poses frames, or images of a --sweep (default 60)")
     p.add_argument("--fps", type=_positive_float, default=24.0)
     p.add_argument("--supersample", type=_positive_int, default=None, metavar="S",
                    help="S x S rays per pixel for colour (default: what the run was trained "

@@ -1,4 +1,5 @@
-"""Images, depth visualisations, comparison sheets and videos (OpenCV)."""
+"""Images, depth visualisations and comparison sheets (OpenCV); videos are in
+:mod:`nerfbot.query.video`."""
 
 from __future__ import annotations
 
@@ -97,30 +98,3 @@ def comparison_sheet(rows: list[dict], scale: int = 2) -> np.ndarray:
         out.append(labelled_row([r["gt"], r["rgb"], depth, error_map(r["rgb"], r["gt"])],
                                 ["ground truth", "render", "depth", "|error|"], scale))
     return np.vstack(out)
-
-
-def write_video(path, frames: Iterable[np.ndarray], fps: float = 24.0) -> Path:
-    """Write RGB frames (float [0, 1] or uint8, all the same size) to an MP4 (or AVI) video."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".tmp{os.getpid()}.{path.name}")
-    fourcc = cv2.VideoWriter_fourcc(*("mp4v" if path.suffix.lower() == ".mp4" else "MJPG"))
-    writer = None
-    n = 0
-    try:
-        for frame in frames:
-            img = frame if frame.dtype == np.uint8 else to_uint8(frame)
-            if writer is None:
-                writer = cv2.VideoWriter(str(tmp), fourcc, fps, (img.shape[1], img.shape[0]))
-                if not writer.isOpened():
-                    raise RuntimeError(f"{path}: OpenCV cannot write {path.suffix} video here")
-            writer.write(cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
-            n += 1
-    finally:
-        if writer is not None:
-            writer.release()
-    if n == 0:
-        tmp.unlink(missing_ok=True)
-        raise ValueError(f"{path}: no frames to write")
-    os.replace(tmp, path)
-    return path
