@@ -61,7 +61,7 @@ LAYOUTS = {
     "dataset": ("transforms*.json", "images", "depth", "segmentation", "sensor_depth", "train",
                 "val", "test", "states.npz"),
     "run": ("checkpoint*.pt", "checkpoints", "config.json", "curve.json", "metrics.json",
-            "auto.json", "auto_sweep", "labels.json"),
+            "auto.json", "auto_sweep", "labels.json", "scalars.csv", "curve.png"),
     "baked_run": ("checkpoint*.pt", "config.json", "curve.json", "bake.json"),
     "bench": ("bench.json", "bench.csv", "bench_runs.csv", "bench.md", "psnr_vs_*.png", "data",
               "runs"),

@@ -34,6 +34,7 @@ from nerfbot.train.checkpoints import (CHECKPOINT, RESUME_REQUIRED, CheckpointEr
 from nerfbot.train.config import TrainConfig
 from nerfbot.train.runs import (build_from_spec, canonical_text, first_line, load_model,
                                 load_model_state, model_spec, spec_differences)
+from nerfbot.train.scalars import SCALARS, plot_scalars, read_scalars, step_row, write_scalars
 
 
 log = logging.getLogger(__name__)
@@ -173,6 +174,9 @@ class Trainer:
         self.n_rays = self.model.rays_for_next_batch(None, 0)
         self.last_samples: Optional[int] = None
         self.curve: list[dict] = []
+        self.scalars: list[dict] = []
+        """Per-step scalars (:mod:`nerfbot.train.scalars`), written to ``scalars.csv``."""
+        self._occupied: Optional[float] = None
         self.evaluate_fn = evaluate_fn
 
     def _load_labels(self) -> None:
@@ -219,9 +223,11 @@ class Trainer:
 
     def save(self) -> Path:
         """Write the run's checkpoint durably (:func:`nerfbot.train.checkpoints.save_checkpoint`;
-        the one before is kept as ``checkpoint.prev.pt``) and ``curve.json``."""
+        the one before is kept as ``checkpoint.prev.pt``), ``curve.json`` and
+        ``scalars.csv``."""
         path = save_checkpoint(self.state(), self.out / CHECKPOINT)
         write_json_atomic(self.out / "curve.json", self.curve, allow_nan=True)
+        write_scalars(self.out / SCALARS, self.scalars)
         return path
 
     def load(self, path: Optional[Path] = None) -> bool:
@@ -256,6 +262,12 @@ class Trainer:
         self.step, self.train_seconds = ckpt["step"], ckpt["train_seconds"]
         self.n_rays, self.curve = ckpt["n_rays"], ckpt["curve"]
         self.last_samples = ckpt["last_samples"]
+        try:  # the steps up to the checkpoint's; a damaged table is started afresh
+            self.scalars = read_scalars(self.out / SCALARS, up_to_step=self.step)
+        except (ValueError, OSError, UnicodeDecodeError) as err:
+            log.warning("%s; its per-step scalars start again at step %d", first_line(err),
+                        self.step)
+            self.scalars = []
         remove_stale_temporaries(path)
         return True
 
@@ -359,8 +371,12 @@ class Trainer:
                 self.optimizer_step()
                 self.step += 1
                 self.last_samples = out.num_samples
-                self.train_seconds += time.perf_counter() - t0
+                step_seconds = time.perf_counter() - t0
+                self.train_seconds += step_seconds
                 loss_v = loss.detach().item()
+                self._occupied = upkeep.get("occupied", self._occupied)
+                self.scalars.append(step_row(self.step, self.train_seconds, loss_v, self.n_rays,
+                                             out.num_samples, self._occupied, lr, step_seconds))
                 loss_ema = loss_v if loss_ema is None else 0.9 * loss_ema + 0.1 * loss_v
                 bar.update(1)
                 if self.step % 10 == 0 or self.done():
@@ -393,5 +409,7 @@ class Trainer:
         bar.close()
         self._check_finite_parameters()
         self.save()
+        plot_scalars(self.out / "curve.png", self.scalars, self.curve,
+                     title=f"{c.method}: {self.step} steps in {self.train_seconds:.0f} s")
         return {"steps": self.step, "train_seconds": self.train_seconds,
                 "steps_per_second": self.step / max(self.train_seconds, 1e-9)}
