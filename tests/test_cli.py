@@ -8,6 +8,7 @@ import json
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from nerfbot.app.cli import main
 from nerfbot.data import load_dataset
@@ -25,10 +26,13 @@ def tiny_run(tiny_capture, tmp_path_factory):
     return run
 
 
-def test_train_writes_run_and_metrics(tiny_run):
+def test_train_writes_run_and_metrics(tiny_run, tiny_capture):
     assert (tiny_run / "checkpoint.pt").exists() and (tiny_run / "config.json").exists()
     metrics = json.loads((tiny_run / "metrics.json").read_text())
     assert EVAL_KEYS <= metrics.keys() and metrics["steps"] == 30
+    config = json.loads((tiny_run / "config.json").read_text())
+    assert config["command"][:4] == ["nerfbot", "train", "--data", str(tiny_capture[0])]
+    assert config["versions"]["torch"] == torch.__version__ and config["versions"]["python"]
 
 
 def test_eval_json(tiny_run, capsys):

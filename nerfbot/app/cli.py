@@ -261,7 +261,8 @@ def _train_into(args, out: Path, ds, options: dict, background) -> int:
         log.warning("%s: no 'test' frame (splits: %s); the run gets no test metrics", ds.root,
                     ds.split_sizes())
     trainer = Trainer(ds, out, config,
-                      evaluate_fn=curve_eval if args.eval_at and scored else None)
+                      evaluate_fn=curve_eval if args.eval_at and scored else None,
+                      command=getattr(args, "argv", None))
     if args.resume and trainer.load():
         log.info("resumed %s at step %d (%.1f s trained)", out, trainer.step, trainer.train_seconds)
     if args.method == "auto":  # after a resume was found consistent with the run
@@ -1301,7 +1302,9 @@ def main(argv=None) -> int:
     keep_freed_memory()  # first, before anything allocates large blocks
     import sims  # noqa: F401  (sets MUJOCO_GL before anything imports mujoco)
 
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
+    args.argv = ["nerfbot", *(str(a) for a in argv)]
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(levelname)s %(name)s: %(message)s")
     try:

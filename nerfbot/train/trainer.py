@@ -60,6 +60,26 @@ def warm_up_step(model: Model, bank: "PixelBank", step: int, progress: float) ->
     loss.backward()
 
 
+#: Packages whose versions a run's config.json records.
+RECORDED_PACKAGES = ("nerfbot", "torch", "numpy", "numba", "mujoco", "open3d", "pycolmap",
+                     "trimesh", "opencv-contrib-python-headless")
+
+
+def package_versions() -> dict:
+    """{"python": version, package: version or None (not installed)} of
+    :data:`RECORDED_PACKAGES`."""
+    import platform
+    from importlib import metadata
+
+    versions = {"python": platform.python_version()}
+    for name in RECORDED_PACKAGES:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = None
+    return versions
+
+
 def sample_span(out: RenderOutput, first_ray: int, stop_ray: int) -> slice:
     """The packed samples of rays ``first_ray`` up to ``stop_ray`` (exclusive) of a render
     output (its samples are sorted by ray)."""
@@ -141,9 +161,13 @@ class Trainer:
     """
 
     def __init__(self, dataset: Dataset, out_dir, config: TrainConfig,
-                 evaluate_fn: Optional[Callable[[Model], dict]] = None):
+                 evaluate_fn: Optional[Callable[[Model], dict]] = None,
+                 command: Optional[list[str]] = None):
         config.validate()
         self.dataset, self.config = dataset, config
+        self.command = command
+        """The command line of this training session (``nerfbot`` and its arguments; a resume's
+        replaces the first), kept in config.json beside the package versions."""
         self.out = Path(out_dir)
         self.out.mkdir(parents=True, exist_ok=True)
         self.method = get_method(config.method)
@@ -335,7 +359,8 @@ class Trainer:
         warm_up_step(self.model, self.bank, self.step, self.progress())
         write_json_atomic(self.out / "config.json", {
             "train": asdict(c), **run_data_fields(self.dataset.root, self.out),
-            "spec": self.spec}, allow_nan=True)
+            "spec": self.spec, "command": self.command, "versions": package_versions()},
+            allow_nan=True)
         pending_t = sorted(s for s in c.eval_at_seconds if s > self.train_seconds)
         pending_s = sorted(s for s in c.eval_at_steps if s > self.step)
         total = c.max_steps if c.max_steps is not None else None
