@@ -486,3 +486,49 @@ def test_kill_9_during_a_checkpoint_write_resumes_to_the_same_parameters(tiny_ca
     for k, state in a["optimizer"]["state"].items():
         assert torch.equal(state["exp_avg"], b["optimizer"]["state"][k]["exp_avg"])
     assert torch.equal(a["generator"], b["generator"])
+
+
+# ----------------------------------------------------------------------------- saved configs
+
+def test_config_retrains_a_run_exactly_and_refuses_other_flags(cli_run, tmp_path, capsys):
+    """``train --config RUN/config.json`` makes the same run again (same metrics, to the last
+    digit, for a step budget); a run flag that differs from the file is refused."""
+    again = tmp_path / "again"
+    assert main(["train", "--config", str(cli_run / "config.json"), "--out", str(again),
+                 "--no-progress"]) == 0
+    first = json.loads((cli_run / "metrics.json").read_text())
+    second = json.loads((again / "metrics.json").read_text())
+    assert second["steps"] == first["steps"] == 4
+    assert second["psnr"] == first["psnr"] and second["depth_mae_m"] == first["depth_mae_m"]
+    saved = json.loads((again / "config.json").read_text())
+    assert saved["train"]["options"] == json.loads(
+        (cli_run / "config.json").read_text())["train"]["options"]
+    capsys.readouterr()
+    assert main(["train", "--config", str(cli_run / "config.json"), "--out",
+                 str(tmp_path / "other"), "--seed", "3", "--option", "grid_update_every=8",
+                 "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "--config: --option" in err and "--seed 3 (the run's: 0)" in err
+    assert not (tmp_path / "other").exists()
+    assert main(["train", "--config", str(tmp_path / "none.json"), "--out",
+                 str(tmp_path / "x"), "--no-progress"]) == 2
+    assert "none.json: no such file" in capsys.readouterr().err
+
+
+def test_resume_takes_the_saved_configuration(cli_run, tmp_path, capsys):
+    """``train --out RUN --resume`` needs no other flag: data, method and options are the
+    run's; a training weight that differs from the run's is refused, and nothing changes."""
+    folder = _copy_run(cli_run, tmp_path / "run")
+    assert main(["train", "--out", str(folder), "--resume", "--max-steps", "6",
+                 "--no-progress"]) == 0
+    assert json.loads((folder / "metrics.json").read_text())["steps"] == 6
+    before = _tree_digest(folder)
+    capsys.readouterr()
+    assert main(["train", "--out", str(folder), "--resume", "--max-steps", "8",
+                 "--depth-weight", "0.5", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "--resume with --depth-weight 0.5 (the run's: 0.0)" in err
+    assert _tree_digest(folder) == before
+    assert main(["train", "--out", str(tmp_path / "new"), "--max-steps", "2",
+                 "--no-progress"]) == 2
+    assert "--data DIR is needed" in capsys.readouterr().err

@@ -180,10 +180,120 @@ def cmd_capture(args) -> int:
     return 0
 
 
+#: ``nerfbot train`` flags (argparse dests) that define what a run is: with ``--config`` or
+#: ``--resume`` they come from the saved configuration, and a different value is refused.
+RUN_FLAGS = {"method": "method", "seed": "seed", "lr": "lr", "option": "options",
+             "background": "background", "depth_weight": "depth_weight",
+             "sparse_depth_weight": "sparse_depth_weight", "labels": "labels",
+             "label_clicks": "label_clicks", "label_weight": "label_weight",
+             "eval_at": "eval_at_seconds", "aabb": None}
+def _given_train_flags(argv: list[str]) -> set[str]:
+    """The argparse dests of the ``nerfbot train`` flags written on the command line."""
+    parser = build_parser()
+    train = next(a for a in parser._subparsers._group_actions  # noqa: SLF001
+                 if isinstance(a, argparse._SubParsersAction)).choices["train"]
+    for action in train._actions:
+        action.default = argparse.SUPPRESS
+        action.required = False
+    given = train.parse_known_args(argv[argv.index("train") + 1:])[0]
+    return set(vars(given))
+
+
+def _saved_run(args) -> "tuple[Path, dict] | None":
+    """(run folder, saved config.json) whose configuration this ``nerfbot train`` follows:
+    ``--config FILE``, or with ``--resume`` the run in ``--out``; None otherwise."""
+    from nerfbot.data.run_dataset import CONFIG
+    from nerfbot.data.spec import read_json
+
+    if args.config is not None:
+        path = args.config / CONFIG if args.config.is_dir() else args.config
+        if not path.is_file():
+            raise UsageError(f"--config {path}: no such file")
+        return path.parent, read_json(path)
+    if args.resume and (Path(args.out) / CONFIG).is_file():
+        return Path(args.out), read_json(Path(args.out) / CONFIG)
+    return None
+
+
+def _follow_saved_config(args, run: Path, saved: dict) -> dict:
+    """Fill ``args`` from a run's saved configuration (``saved``: its config.json): every run
+    flag (:data:`RUN_FLAGS`) not written on the command line takes the run's value. With
+    ``--config`` a written one must equal it; with ``--resume`` the model's spec is compared
+    when the checkpoint loads (:func:`nerfbot.train.runs.spec_differences`), the training
+    weights here. Returns the saved training configuration."""
+    from nerfbot.data.run_dataset import resolve_run_dataset
+
+    where = run / "config.json"
+    train, spec = saved.get("train"), saved.get("spec")
+    if not isinstance(train, dict) or not isinstance(spec, dict):
+        raise UsageError(f"{where}: not a run configuration (no 'train' and 'spec' objects)")
+    given = _given_train_flags(getattr(args, "argv", None) or ["train"])
+    values = {dest: train.get(key) for dest, key in RUN_FLAGS.items() if key is not None}
+    values.update(option=dict(train.get("options") or {}), labels=bool(train.get("labels")),
+                  eval_at=list(train.get("eval_at_seconds") or []) or None,
+                  aabb=[v for corner in spec.get("aabb", []) for v in corner] or None,
+                  background=None if train.get("background") is None else
+                  _background_text(train["background"]))
+    checked = set(RUN_FLAGS) if args.config is not None else \
+        {"lr", "depth_weight", "sparse_depth_weight", "label_clicks", "label_weight", "eval_at"}
+    conflicts = []
+    for dest in sorted(checked & given):
+        mine, theirs = _comparable(dest, getattr(args, dest)), _comparable(dest, values[dest])
+        if mine != theirs:
+            conflicts.append(f"--{dest.replace('_', '-')} {_shown(mine)} (the run's: "
+                             f"{_shown(theirs)})")
+    if conflicts and args.config is not None:
+        raise UsageError(f"--config: {'; '.join(conflicts)} differ from {where}; leave them "
+                         "out, or train without --config")
+    if conflicts:
+        raise UsageError(f"{run}: --resume with {'; '.join(conflicts)}; resume with the run's "
+                         "options or train into a new --out")
+    for dest, value in values.items():
+        if dest not in given:
+            setattr(args, dest, list(value.items()) if dest == "option" else value)
+    if args.data is None:
+        try:
+            args.data, _ = resolve_run_dataset(run)
+        except FileNotFoundError as err:
+            raise UsageError(f"{where}: its dataset was not found ({err}); pass --data DIR")
+    if "max_steps" not in given and "max_seconds" not in given:
+        args.max_steps, args.max_seconds = train.get("max_steps"), train.get("max_seconds")
+    return train
+
+
+def _comparable(dest: str, value):
+    """A run flag's value in one form for comparing the command line with a saved run."""
+    if dest == "option":
+        return dict(value or {})
+    if dest == "background":
+        return _parse_background(value) if isinstance(value, str) or value is None else value
+    if dest == "aabb":
+        return None if value is None else [round(float(v), 6) for v in value]
+    if dest == "eval_at":
+        return None if not value else [float(v) for v in value]
+    return value
+
+
+def _shown(value) -> str:
+    return json.dumps(value) if isinstance(value, (dict, list, tuple)) else str(value)
+
+
+def _background_text(background) -> str:
+    """A saved background ("learned", or [r, g, b]) as ``--background`` text."""
+    return background if isinstance(background, str) else ",".join(str(v) for v in background)
+
+
 def cmd_train(args) -> int:
     from nerfbot.data.outputs import check_output_folder
     from nerfbot.train.checkpoints import CHECKPOINT
 
+    if args.config is not None and args.resume:
+        raise UsageError("give --config (train a new run as a saved one was) or --resume "
+                         "(continue the run in --out), not both")
+    saved = _saved_run(args)
+    args.saved_train = _follow_saved_config(args, *saved) if saved else None
+    if args.data is None:
+        raise UsageError("--data DIR is needed (or --config RUN/config.json, or --resume)")
     auto_goal = args.target_psnr is not None or args.time_budget is not None
     if args.method != "auto" and (auto_goal or args.bench_table is not None):
         raise UsageError("--target-psnr / --time-budget / --bench-table need "
@@ -215,17 +325,27 @@ def cmd_train(args) -> int:
 def _train_config(args, method: str, options: dict, max_seconds, background):
     from nerfbot.train.trainer import TrainConfig
 
-    return TrainConfig(method=method, max_steps=args.max_steps,
-                       max_seconds=max_seconds, seed=args.seed, lr=args.lr,
-                       options=options, background=background,
-                       depth_weight=args.depth_weight,
-                       sparse_depth_weight=args.sparse_depth_weight,
-                       labels=args.labels or args.label_clicks is not None,
-                       label_weight=args.label_weight, label_clicks=args.label_clicks,
-                       eval_at_seconds=args.eval_at or (),
-                       checkpoint_every_seconds=args.checkpoint_every_seconds,
-                       checkpoint_every_steps=args.checkpoint_every_steps,
-                       device=args.device, progress=not args.no_progress)
+    saved = getattr(args, "saved_train", None) or {}
+    # fields without a flag (e.g. label_rays, eval_at_steps) come from a followed run
+    keep = {k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()
+            if k in {"sparse_depth_rays", "label_rays", "eval_at_steps"}}
+    return TrainConfig(**{**_flag_train_config(args, method, options, max_seconds, background),
+                          **keep})
+
+
+def _flag_train_config(args, method: str, options: dict, max_seconds, background) -> dict:
+    """The training-configuration fields ``nerfbot train``'s flags set."""
+    return dict(method=method, max_steps=args.max_steps,
+                max_seconds=max_seconds, seed=args.seed, lr=args.lr,
+                options=options, background=background,
+                depth_weight=args.depth_weight,
+                sparse_depth_weight=args.sparse_depth_weight,
+                labels=args.labels or args.label_clicks is not None,
+                label_weight=args.label_weight, label_clicks=args.label_clicks,
+                eval_at_seconds=args.eval_at or (),
+                checkpoint_every_seconds=args.checkpoint_every_seconds,
+                checkpoint_every_steps=args.checkpoint_every_steps,
+                device=args.device, progress=not args.no_progress)
 
 
 def _train_into(args, out: Path, ds, options: dict, background) -> int:
@@ -941,7 +1061,12 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_capture)
 
     p = sub.add_parser("train", help="train a radiance field on a dataset")
-    p.add_argument("--data", required=True, type=Path, help="dataset folder or transforms JSON")
+    p.add_argument("--data", type=Path, default=None,
+                   help="dataset folder or transforms JSON (with --config / --resume: the "
+                        "run's, unless it moved)")
+    p.add_argument("--config", type=Path, default=None, metavar="RUN/config.json",
+                   help="train again exactly as a run was trained: its data, method, options, "
+                        "bounds, seed and budgets (the budgets may be given anew)")
     p.add_argument("--method", default="ngp", choices=sorted(DESCRIPTIONS) + ["auto"],
                    help="; ".join(f"{k}: {v}" for k, v in DESCRIPTIONS.items())
                    + "; auto: model only what the scene manifest says it needs (see "
@@ -977,8 +1102,8 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
     p.add_argument("--label-weight", type=_non_negative_float, default=0.04, metavar="W",
                    help="weight of the labels' cross-entropy (default 0.04, Semantic-NeRF's)")
     p.add_argument("--resume", action="store_true",
-                   help="continue the run in --out (with the same data, method, options, "
-                        "bounds, background and seed; the budgets may change)")
+                   help="continue the run in --out with its saved configuration (flags that "
+                        "differ from it are refused; the budgets may change)")
     p.add_argument("--checkpoint-every-seconds", type=_non_negative_float, default=60.0,
                    metavar="S", help="write a checkpoint at least every S s of training "
                                      "(default 60; inf: only at the end)")
