@@ -180,17 +180,22 @@ def cmd_capture(args) -> int:
     return 0
 
 
-#: ``nerfbot train`` flags (argparse dests) that define what a run is: with ``--config`` or
-#: ``--resume`` they come from the saved configuration, and a different value is refused.
+#: ``nerfbot train`` flags that define what a run is (argparse dest -> the saved training
+#: configuration's field; the bounds come from the saved spec): with ``--config`` or
+#: ``--resume`` those not given come from the saved run (:func:`_follow_saved_config`).
 RUN_FLAGS = {"method": "method", "seed": "seed", "lr": "lr", "option": "options",
              "background": "background", "depth_weight": "depth_weight",
              "sparse_depth_weight": "sparse_depth_weight", "labels": "labels",
              "label_clicks": "label_clicks", "label_weight": "label_weight",
              "eval_at": "eval_at_seconds", "aabb": None}
+
+
 def _given_train_flags(argv: list[str]) -> set[str]:
     """The argparse dests of the ``nerfbot train`` flags written on the command line."""
     parser = build_parser()
-    train = next(a for a in parser._subparsers._group_actions  # noqa: SLF001
+    # argparse keeps its subparsers private; a copy of the train parser without defaults
+    # parses to the flags that were written and nothing else
+    train = next(a for a in parser._subparsers._group_actions
                  if isinstance(a, argparse._SubParsersAction)).choices["train"]
     for action in train._actions:
         action.default = argparse.SUPPRESS

@@ -5,6 +5,8 @@ spherical linear interpolation (scipy), keyframes equally spaced in time.
 from __future__ import annotations
 
 import numpy as np
+from scipy.interpolate import CubicSpline
+from scipy.spatial.transform import Rotation, Slerp
 
 
 def interpolate_poses(keyframes: np.ndarray, frames: int) -> np.ndarray:
@@ -15,9 +17,6 @@ def interpolate_poses(keyframes: np.ndarray, frames: int) -> np.ndarray:
     through the keyframes' centres over that time (a straight line for K = 2), the rotations
     the slerp between neighbouring keyframes. One keyframe gives ``frames`` copies of it.
     ValueError for no keyframes, frames < 1 or a rotation part that is not a rotation."""
-    from scipy.interpolate import CubicSpline
-    from scipy.spatial.transform import Rotation, Slerp
-
     keys = np.asarray(keyframes, dtype=np.float64)
     if keys.ndim != 3 or keys.shape[1:] not in ((4, 4), (3, 4)) or not len(keys):
         raise ValueError(f"keyframes must be (K, 4, 4) or (K, 3, 4) with K >= 1, got "

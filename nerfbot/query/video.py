@@ -12,7 +12,10 @@ from fractions import Fraction
 from pathlib import Path
 from typing import Iterable
 
+import av
 import numpy as np
+
+from nerfbot.query.export import to_uint8
 
 #: Video file suffix -> (PyAV codec, pixel format).
 VIDEO_CODECS = {".mp4": ("libx264", "yuv420p"), ".webm": ("libvpx-vp9", "yuv420p"),
@@ -32,10 +35,6 @@ def write_video(path, frames: Iterable[np.ndarray], fps: float = 24.0) -> Path:
     whose suffix picks the format (:data:`VIDEO_CODECS`); atomically: the file appears only
     once every frame is written. ValueError for another suffix, no frames, or frames of
     different sizes."""
-    import av
-
-    from nerfbot.query.export import to_uint8
-
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in VIDEO_CODECS:
@@ -90,8 +89,6 @@ def write_video(path, frames: Iterable[np.ndarray], fps: float = 24.0) -> Path:
 def video_info(path) -> dict:
     """What a video file holds: {"codec", "pix_fmt", "width", "height", "frames", "fps"}
     (frames decoded and counted)."""
-    import av
-
     with av.open(str(path)) as container:
         stream = container.streams.video[0]
         ctx = stream.codec_context

@@ -14,13 +14,12 @@ from __future__ import annotations
 
 import csv
 import io
-import logging
 import math
 import os
 from pathlib import Path
 from typing import Optional, Sequence
 
-log = logging.getLogger(__name__)
+from matplotlib.figure import Figure
 
 #: File name of the table in a run folder.
 SCALARS = "scalars.csv"
@@ -82,12 +81,10 @@ def plot_scalars(path: Path, rows: Sequence[dict], evaluations: Sequence[dict] =
                  title: str = "") -> Path:
     """``curve.png``: batch PSNR (and the held-out PSNR of ``evaluations``, the records of
     ``curve.json``), loss, and step time against the step."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     steps = [r["step"] for r in rows]
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4))
+    # a Figure of its own, not pyplot's: a run trained in a notebook leaves its backend alone
+    fig = Figure(figsize=(15, 4))
+    axes = fig.subplots(1, 3)
     ax = axes[0]
     ax.plot(steps, [r["psnr"] for r in rows], lw=0.6, alpha=0.5, label="batch (from the loss)")
     held = [e for e in evaluations if e.get("psnr") is not None and "step" in e]
@@ -105,6 +102,5 @@ def plot_scalars(path: Path, rows: Sequence[dict], evaluations: Sequence[dict] =
     path = Path(path)
     tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}.png")
     fig.savefig(tmp, dpi=90)
-    plt.close(fig)
     os.replace(tmp, path)
     return path

@@ -6,8 +6,10 @@ from __future__ import annotations
 import copy
 import logging
 import math
+import platform
 import time
 from dataclasses import asdict
+from importlib import metadata
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -68,9 +70,6 @@ RECORDED_PACKAGES = ("nerfbot", "torch", "numpy", "numba", "mujoco", "open3d", "
 def package_versions() -> dict:
     """{"python": version, package: version or None (not installed)} of
     :data:`RECORDED_PACKAGES`."""
-    import platform
-    from importlib import metadata
-
     versions = {"python": platform.python_version()}
     for name in RECORDED_PACKAGES:
         try:
