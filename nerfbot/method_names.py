@@ -20,6 +20,8 @@ DESCRIPTIONS = {
                "occupancy-grid marching",
     "tnerf": "T-NeRF: time or joints as an extra input of an NGP field",
     "dnerf": "D-NeRF: deformation (space-time planes) into a canonical NGP field",
+    "kplanes": "static NGP field + K-Planes space-time planes for what moves (densities "
+               "added)",
     "articulated": "one NGP field per rigid part, placed by forward kinematics of the joints",
     "plenoctree": "PlenOctrees' NeRF-SH: hash grid -> density + SH colour (no direction "
                   "input); bake with `nerfbot bake --octree`",

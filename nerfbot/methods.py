@@ -28,6 +28,7 @@ from nerfbot.fields.background import make_background
 from nerfbot.fields.dnerf import DNeRFField, DNeRFFieldConfig
 from nerfbot.fields.fastnerf import FastNeRFField, FastNeRFFieldConfig
 from nerfbot.fields.kilonerf import KiloNeRFField, KiloNeRFFieldConfig
+from nerfbot.fields.kplanes import KPlanesField, KPlanesFieldConfig
 from nerfbot.fields.mipnerf import MipNeRFField, MipNeRFFieldConfig
 from nerfbot.fields.nerf import NeRFField, NeRFFieldConfig
 from nerfbot.fields.nerfsh import NeRFSHField, NeRFSHFieldConfig
@@ -230,6 +231,11 @@ KILONERF_RENDERER = OccupancyModelConfig(render_steps=128, grid_resolution=128,
                                          grid_threshold=0.15)
 
 
+#: kplanes' renderer defaults: the conditioned family's, with ngp's 2^15 samples per step: small
+#: moving objects need steps more than large batches (BENCHMARKS.md, section 4).
+KPLANES_RENDERER = replace(CONDITIONED_NGP_RENDERER, samples_per_batch=1 << 15)
+
+
 def conditioned_ngp_method(field_cls, own_config) -> MethodSpec:
     """The entry of a conditioned ngp variant: ``field_cls`` (see
     :func:`_conditioned_ngp_build`) with ngp's field defaults, ``own_config`` (an instance) and
@@ -303,6 +309,9 @@ register_method("tensorf", MethodSpec(
     configs=(TensoRFFieldConfig(), OccupancyModelConfig())))
 register_method("tnerf", conditioned_ngp_method(TNeRFField, TNeRFFieldConfig()))
 register_method("dnerf", conditioned_ngp_method(DNeRFField, DNeRFFieldConfig()))
+register_method("kplanes", MethodSpec(
+    _conditioned_ngp_build(KPlanesField), lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
+    configs=(NGPFieldConfig(), KPlanesFieldConfig(), KPLANES_RENDERER)))
 register_method("articulated",
                 conditioned_ngp_method(ArticulatedField, ArticulatedFieldConfig()))
 register_method("plenoctree", MethodSpec(

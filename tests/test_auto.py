@@ -56,7 +56,7 @@ def test_glass_keeps_faint_density_and_defaults_to_threshold_depth():
 
 def test_changing_scenes_get_a_conditioned_method():
     c = choose_from_manifest(_manifest(time_varying=True, moving_joints=["ball_free"]))
-    assert (c.method, c.conditioning) == ("dnerf", "time")
+    assert (c.method, c.conditioning) == ("kplanes", "time")
     c = choose_from_manifest(_manifest(moving_joints=["door"]))
     assert (c.method, c.conditioning) == ("articulated", "joints")
     assert "sh_degree" not in c.options

@@ -41,7 +41,8 @@ JOINTS = Conditioning(
     part_bounds=[{"joints": ["a"], "bodies": ["lid"],
                   "bounds": [[-0.1, -0.1, 0.0], [0.1, 0.1, 0.2]]}])
 CONDITIONING = {"tnerf": Conditioning("time", ("time",), ((0.0, 1.0),)),
-                "dnerf": Conditioning("time", ("time",), ((0.0, 1.0),)), "articulated": JOINTS}
+                "dnerf": Conditioning("time", ("time",), ((0.0, 1.0),)),
+                "kplanes": Conditioning("time", ("time",), ((0.0, 1.0),)), "articulated": JOINTS}
 #: The renderer defaults in which tnerf, dnerf and articulated differ from ngp (the registry's
 #: CONDITIONED_NGP_RENDERER says why they are kept).
 CONDITIONED_RENDERER_DIFFERENCES = {"supersample", "supersample_from", "density_noise",

@@ -1549,6 +1549,11 @@ def _(sb):
     return TRAIN1 + ["--checkpoint-every-steps", "0"]
 
 
+@case("F55", F, "train --dynamic-rays 1.5", mentions=("--dynamic-rays",))
+def _(sb):
+    return TRAIN1 + ["--dynamic-rays", "1.5"]
+
+
 # MJCF scenes --------------------------------------------------------------------------------
 M = "MJCF scene"
 

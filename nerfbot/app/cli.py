@@ -114,6 +114,7 @@ _non_negative_int = _number(int, lambda v: v >= 0, "an integer >= 0")
 _positive_float = _number(float, lambda v: 0.0 < v < math.inf, "a positive finite number")
 #: A number >= 0, ``inf`` allowed (a cadence that never comes).
 _non_negative_float = _number(float, lambda v: v >= 0.0, "a number >= 0")
+_fraction = _number(float, lambda v: 0.0 <= v <= 1.0, "a number in [0, 1]")
 #: A time in [0, 1] (the span of a dynamic capture).
 _unit_time = _number(float, lambda v: 0.0 <= v <= 1.0, "a time in [0, 1]")
 
@@ -187,6 +188,7 @@ RUN_FLAGS = {"method": "method", "seed": "seed", "lr": "lr", "option": "options"
              "background": "background", "depth_weight": "depth_weight",
              "sparse_depth_weight": "sparse_depth_weight", "labels": "labels",
              "label_clicks": "label_clicks", "label_weight": "label_weight",
+             "dynamic_rays": "dynamic_rays", "dynamic_rays_debias": "dynamic_rays_debias",
              "eval_at": "eval_at_seconds", "aabb": None}
 
 
@@ -238,9 +240,13 @@ def _follow_saved_config(args, run: Path, saved: dict) -> dict:
                   eval_at=list(train.get("eval_at_seconds") or []) or None,
                   aabb=[v for corner in spec.get("aabb", []) for v in corner] or None,
                   background=None if train.get("background") is None else
-                  _background_text(train["background"]))
+                  _background_text(train["background"]),
+                  # runs from before these flags drew rays uniformly
+                  dynamic_rays=train.get("dynamic_rays", 0.0),
+                  dynamic_rays_debias=train.get("dynamic_rays_debias", 0.5))
     checked = set(RUN_FLAGS) if args.config is not None else \
-        {"lr", "depth_weight", "sparse_depth_weight", "label_clicks", "label_weight", "eval_at"}
+        {"lr", "depth_weight", "sparse_depth_weight", "label_clicks", "label_weight",
+         "dynamic_rays", "dynamic_rays_debias", "eval_at"}
     conflicts = []
     for dest in sorted(checked & given):
         mine, theirs = _comparable(dest, getattr(args, dest)), _comparable(dest, values[dest])
@@ -347,6 +353,7 @@ def _flag_train_config(args, method: str, options: dict, max_seconds, background
                 sparse_depth_weight=args.sparse_depth_weight,
                 labels=args.labels or args.label_clicks is not None,
                 label_weight=args.label_weight, label_clicks=args.label_clicks,
+                dynamic_rays=args.dynamic_rays, dynamic_rays_debias=args.dynamic_rays_debias,
                 eval_at_seconds=args.eval_at or (),
                 checkpoint_every_seconds=args.checkpoint_every_seconds,
                 checkpoint_every_steps=args.checkpoint_every_steps,
@@ -1106,6 +1113,14 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
                         "(iLabel's clicks) instead of full label maps; implies --labels")
     p.add_argument("--label-weight", type=_non_negative_float, default=0.04, metavar="W",
                    help="weight of the labels' cross-entropy (default 0.04, Semantic-NeRF's)")
+    p.add_argument("--dynamic-rays", type=_fraction, default=0.5, metavar="F",
+                   help="captures over time: fraction of each batch's pixels drawn where the "
+                        "images change over time (DyNeRF's importance sampling; needs cameras "
+                        "that film several time steps), the rest uniformly (default 0.5; 0: "
+                        "uniform)")
+    p.add_argument("--dynamic-rays-debias", type=_fraction, default=0.5, metavar="D",
+                   help="how much of the bias of those draws the loss undoes: 1 = unbiased, "
+                        "0 = the changing pixels also weigh more (DyNeRF's) (default 0.5)")
     p.add_argument("--resume", action="store_true",
                    help="continue the run in --out with its saved configuration (flags that "
                         "differ from it are refused; the budgets may change)")

@@ -1,6 +1,6 @@
-"""Training pixels of a dataset: uniform draws among the valid pixels of every training frame
-(:class:`PixelBank`), as rays with their colours, and which ground-truth depths are usable
-(:func:`depth_valid_mask`).
+"""Training pixels of a dataset: uniform draws among the valid pixels of every training frame,
+some optionally drawn by importance weights (:class:`PixelBank`), as rays with their colours,
+and which ground-truth depths are usable (:func:`depth_valid_mask`).
 """
 
 from __future__ import annotations
@@ -92,6 +92,16 @@ class PixelBank:
         self._dataset, self._indices = dataset, list(indices)
         self.last_pixels: Optional[torch.Tensor] = None
         """(n,) pixel indices of the last :meth:`sample`."""
+        self._importance: Optional[torch.Tensor] = None
+        self._importance_cdf: Optional[torch.Tensor] = None
+        self.importance_fraction = 0.0
+        """Fraction of each :meth:`sample` drawn by :meth:`set_importance`'s weights."""
+        self.importance_debias = 1.0
+        """How much of the importance draws' bias :attr:`last_weights` undo (see
+        :meth:`set_importance`)."""
+        self.last_weights: Optional[torch.Tensor] = None
+        """(n,) float32 loss weights of the last :meth:`sample`'s pixels that undo the bias of
+        importance draws (None without them): see :meth:`set_importance`."""
         self.conds = None if conditions is None else \
             torch.as_tensor(conditions[indices], dtype=torch.float32, device=device)
         """(frames, C) condition vector of each frame (time or joints), None when static."""
@@ -205,20 +215,76 @@ class PixelBank:
         z, sigma = keys[:, 2].repeat_interleave(k), keys[:, 3].repeat_interleave(k)
         return rays, colours, slot, z / rays.z_per_t, sigma / rays.z_per_t
 
+    def set_importance(self, weights: np.ndarray, fraction: float, debias: float = 1.0) -> None:
+        """Draw ``fraction`` of every :meth:`sample` with probability proportional to
+        ``weights`` (P,) >= 0 (e.g. :func:`~nerfbot.data.importance.importance_weights`), the
+        rest uniformly. Masked-out pixels weigh 0 whatever ``weights`` says; ValueError when
+        nothing is left to weigh.
+
+        A pixel is then drawn with probability q = (1 - f) / V + f w / W (V drawable pixels,
+        W the weights' sum, f = ``fraction``) instead of 1 / V, and :attr:`last_weights` holds
+        ((1 / V) / q) ** ``debias`` for each drawn pixel. With ``debias`` 1 a loss weighted by
+        it has the expectation of a uniform batch's (for f < 1): the static scene is trained
+        as much as before and the pixels that change get many more, less noisy, samples of
+        the same total weight. With 0 (DyNeRF's) the changing pixels also weigh more in the
+        loss; in between, partly."""
+        w = torch.as_tensor(np.asarray(weights), dtype=torch.float64).reshape(-1)
+        if w.shape[0] != len(self):
+            raise ValueError(f"importance weights: expected {len(self)} pixels, got {w.shape[0]}")
+        if not bool(torch.isfinite(w).all()) or bool((w < 0).any()):
+            raise ValueError("importance weights must be finite and >= 0")
+        if not 0.0 <= fraction <= 1.0:
+            raise ValueError(f"importance fraction must be in [0, 1], got {fraction}")
+        if not 0.0 <= debias <= 1.0:
+            raise ValueError(f"importance debias must be in [0, 1], got {debias}")
+        if self.valid is not None:
+            keep = torch.zeros_like(w, dtype=torch.bool)
+            rank = torch.arange(len(self.valid))
+            for chunk in rank.split(1 << 20):
+                keep[self.valid.pixel(chunk)] = True
+            w = torch.where(keep, w, torch.zeros_like(w))
+        if not float(w.sum()) > 0.0:
+            raise ValueError("importance weights are zero on every drawable pixel")
+        self._importance = w.float().to(self.device)
+        self._importance_cdf = torch.cumsum(w, 0).to(self.device)
+        self.importance_fraction = float(fraction)
+        self.importance_debias = float(debias)
+
+    def _uniform_pixels(self, n: int, generator: torch.Generator) -> torch.Tensor:
+        if self.valid is None:
+            return torch.randint(len(self), (n,), generator=generator).to(self.device)
+        return self.valid.pixel(torch.randint(len(self.valid), (n,), generator=generator)
+                                .to(self.device))
+
+    def _important_pixels(self, n: int, generator: torch.Generator) -> torch.Tensor:
+        cdf = self._importance_cdf
+        u = torch.rand(n, generator=generator, dtype=torch.float64).to(self.device) * cdf[-1]
+        # the first pixel whose cumulative weight exceeds u: never one of weight 0
+        return torch.searchsorted(cdf, u, right=True).clamp_(max=len(cdf) - 1)
+
+    def _loss_weights(self, p: torch.Tensor) -> torch.Tensor:
+        """(n,) (1 / V) / q of pixels ``p`` (see :meth:`set_importance`)."""
+        f = self.importance_fraction
+        drawable = len(self) if self.valid is None else len(self.valid)
+        share = self._importance[p].double() * drawable / self._importance_cdf[-1]
+        return (1.0 / ((1.0 - f) + f * share)).pow(self.importance_debias).float()
+
     def sample(self, n: int, generator: torch.Generator, supersample: int = 1
                ) -> tuple[Rays, torch.Tensor, torch.Tensor]:
         """``n`` random pixels: their rays, colours (n, 3) float32 in [0, 1], frame slots (n,).
         Their pixel indices are kept in :attr:`last_pixels`; masked-out pixels are never drawn.
+        After :meth:`set_importance`, the first ``round(n * fraction)`` are drawn by the
+        importance weights, the others uniformly.
 
         With ``supersample`` S = 1 the rays go through the pixel centres: (n,) rays. With S > 1
         each pixel gets S x S rays, one through a uniformly random point of each cell of an
         S x S grid over the pixel (stratified): (n * S * S,) rays, pixel after pixel."""
-        if self.valid is None:
-            p = torch.randint(len(self), (n,), generator=generator).to(self.device)
-        else:
-            p = self.valid.pixel(torch.randint(len(self.valid), (n,), generator=generator)
-                                 .to(self.device))
+        k = round(n * self.importance_fraction) if self._importance_cdf is not None else 0
+        p = self._uniform_pixels(n - k, generator)
+        if k:
+            p = torch.cat([self._important_pixels(k, generator), p])
         self.last_pixels = p
+        self.last_weights = None if self._importance is None else self._loss_weights(p)
         slot = torch.searchsorted(self.offsets[1:], p, right=True)
         rays, colours = self._pixel_rays(p, slot, generator, supersample)
         return rays, colours, slot

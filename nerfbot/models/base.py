@@ -19,7 +19,6 @@ from typing import Callable, Optional
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from nerfbot.fields.background import BakedBackground
@@ -37,6 +36,17 @@ def pixel_mean(values: torch.Tensor, rays_per_pixel: int) -> torch.Tensor:
         raise ValueError(f"{values.shape[0]} rays are not a whole number of pixels of "
                          f"{rays_per_pixel} rays")
     return values.reshape(-1, rays_per_pixel, *values.shape[1:]).mean(1)
+
+
+def photometric_loss(rgb: torch.Tensor, target_rgb: torch.Tensor, rays_per_pixel: int = 1,
+                     pixel_weights: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Mean squared error of rendered colours (P * K, 3), K = ``rays_per_pixel`` rays per pixel
+    averaged first, against ``target_rgb`` (P, 3); each pixel's error times its weight in
+    ``pixel_weights`` (P,) when given (importance-sampling corrections, mean about 1)."""
+    err = (pixel_mean(rgb, rays_per_pixel) - target_rgb).square()
+    if pixel_weights is None:
+        return err.mean()
+    return (err.mean(-1) * pixel_weights).mean()
 
 
 class Model(nn.Module, metaclass=abc.ABCMeta):
@@ -86,12 +96,13 @@ class Model(nn.Module, metaclass=abc.ABCMeta):
     def loss(self, rays: Rays, target_rgb: torch.Tensor,
              generator: Optional[torch.Generator] = None,
              cond: Optional[torch.Tensor] = None,
-             rays_per_pixel: int = 1) -> tuple[torch.Tensor, RenderOutput]:
+             rays_per_pixel: int = 1, pixel_weights: Optional[torch.Tensor] = None
+             ) -> tuple[torch.Tensor, RenderOutput]:
         """Photometric MSE of the rendered rays against ``target_rgb`` (P, 3), P pixels; the
         (P * rays_per_pixel,) rays come pixel after pixel and their colours are averaged per
-        pixel first."""
+        pixel first (:func:`photometric_loss`, with the pixels' ``pixel_weights`` (P,))."""
         out = self.render_rays(rays, generator, cond)
-        return F.mse_loss(pixel_mean(out.rgb, rays_per_pixel), target_rgb), out
+        return photometric_loss(out.rgb, target_rgb, rays_per_pixel, pixel_weights), out
 
     def before_step(self, step: int, generator: Optional[torch.Generator] = None,
                     progress: float = 0.0) -> dict:

@@ -224,7 +224,8 @@ class FastNeRFCacheModel(Model):
     def rays_for_next_batch(self, last_samples, n_rays):
         self._no_training()
 
-    def loss(self, rays, target_rgb, generator=None, cond=None, rays_per_pixel=1):
+    def loss(self, rays, target_rgb, generator=None, cond=None, rays_per_pixel=1,
+             pixel_weights=None):
         self._no_training()
 
     # -- rendering -----------------------------------------------------------------------------

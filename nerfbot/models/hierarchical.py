@@ -8,11 +8,10 @@ from dataclasses import dataclass
 from typing import Optional
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from nerfbot.fields.base import Field
-from nerfbot.models.base import Model, pixel_mean
+from nerfbot.models.base import Model, photometric_loss
 from nerfbot.models.occupancy import gather_rows
 from nerfbot.ops.cameras import Rays
 from nerfbot.ops.rendering import RenderOutput, composite
@@ -74,7 +73,8 @@ class HierarchicalModel(Model):
     def rays_for_next_batch(self, last_samples: Optional[int], n_rays: int) -> int:
         return self.config.rays_per_batch
 
-    def loss(self, rays, target_rgb, generator=None, cond=None, rays_per_pixel=1):
+    def loss(self, rays, target_rgb, generator=None, cond=None, rays_per_pixel=1,
+             pixel_weights=None):
         coarse, fine = self._render_both(rays, generator, cond)
-        return (F.mse_loss(pixel_mean(coarse.rgb, rays_per_pixel), target_rgb)
-                + F.mse_loss(pixel_mean(fine.rgb, rays_per_pixel), target_rgb)), fine
+        return (photometric_loss(coarse.rgb, target_rgb, rays_per_pixel, pixel_weights)
+                + photometric_loss(fine.rgb, target_rgb, rays_per_pixel, pixel_weights)), fine

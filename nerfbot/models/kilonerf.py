@@ -258,9 +258,10 @@ class KiloNeRFModel(OccupancyModel):
             return {**out, "distill": 1.0}
         return {**out, **super().before_step(step, generator, progress)}
 
-    def loss(self, rays, target_rgb, generator=None, cond=None, rays_per_pixel=1):
+    def loss(self, rays, target_rgb, generator=None, cond=None, rays_per_pixel=1,
+             pixel_weights=None):
         if not self._distilling:
-            return super().loss(rays, target_rgb, generator, cond, rays_per_pixel)
+            return super().loss(rays, target_rgb, generator, cond, rays_per_pixel, pixel_weights)
         loss = self.distill_loss(rays.directions, generator)
         n, z = len(rays), target_rgb.new_zeros(len(rays))
         empty = target_rgb.new_zeros(0)

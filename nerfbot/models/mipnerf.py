@@ -10,12 +10,11 @@ from dataclasses import dataclass
 from typing import Optional
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from nerfbot.fields.mipnerf import (EVAL_QUERY_CHUNK, MipNeRFField, conical_frustum_gaussian,
                                     lift_gaussian)
-from nerfbot.models.base import Model, pixel_mean
+from nerfbot.models.base import Model, photometric_loss
 from nerfbot.ops.cameras import Rays
 from nerfbot.ops.rendering import RenderOutput, composite
 from nerfbot.ops.sampling import pdf_samples, ray_aabb, stratified_samples
@@ -112,12 +111,13 @@ class MipNeRFModel(Model):
     def render_rays(self, rays: Rays, generator=None, cond=None) -> RenderOutput:
         return self._render_both(rays, generator, cond)[1]
 
-    def loss(self, rays, target_rgb, generator=None, cond=None, rays_per_pixel=1):
+    def loss(self, rays, target_rgb, generator=None, cond=None, rays_per_pixel=1,
+             pixel_weights=None):
         coarse, fine = self._render_both(rays, generator, cond)
-        loss = F.mse_loss(pixel_mean(fine.rgb, rays_per_pixel), target_rgb)
+        loss = photometric_loss(fine.rgb, target_rgb, rays_per_pixel, pixel_weights)
         if self.config.coarse_loss_weight > 0:
-            loss = loss + self.config.coarse_loss_weight * F.mse_loss(
-                pixel_mean(coarse.rgb, rays_per_pixel), target_rgb)
+            loss = loss + self.config.coarse_loss_weight * photometric_loss(
+                coarse.rgb, target_rgb, rays_per_pixel, pixel_weights)
         return loss, fine
 
     def rays_for_next_batch(self, last_samples: Optional[int], n_rays: int) -> int:

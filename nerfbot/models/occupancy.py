@@ -10,11 +10,10 @@ from dataclasses import dataclass
 from typing import Optional
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from nerfbot.fields.base import Field
-from nerfbot.models.base import Model, pixel_mean
+from nerfbot.models.base import Model, photometric_loss
 from nerfbot.ops.cameras import Rays
 from nerfbot.ops.contraction import disparity_distance
 from nerfbot.ops.losses import distortion_loss
@@ -339,9 +338,10 @@ class OccupancyModel(Model):
             out.positions, out.features = x, feat
         return out
 
-    def loss(self, rays, target_rgb, generator=None, cond=None, rays_per_pixel=1):
+    def loss(self, rays, target_rgb, generator=None, cond=None, rays_per_pixel=1,
+             pixel_weights=None):
         out = self.render_rays(rays, generator, cond)
-        loss = F.mse_loss(pixel_mean(out.rgb, rays_per_pixel), target_rgb)
+        loss = photometric_loss(out.rgb, target_rgb, rays_per_pixel, pixel_weights)
         if self.config.distortion_weight > 0:
             diagonal = self.grid.inner_size * math.sqrt(3.0)
             ts, te = out.t_starts, out.t_ends

@@ -94,7 +94,7 @@ class AutoChoice:
 
 
 #: Conditioning -> candidate methods, most capable first (the first registered one is used).
-_CONDITIONED = {"time": ("dnerf", "tnerf"), "joints": ("articulated",)}
+_CONDITIONED = {"time": ("kplanes", "dnerf", "tnerf"), "joints": ("articulated",)}
 
 
 def choose_from_manifest(manifest: Optional[dict]) -> AutoChoice:

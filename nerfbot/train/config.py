@@ -63,6 +63,18 @@ class TrainConfig:
     """Pixels per step whose labels are trained: the first of the batch's random pixels with
     full label maps; with ``label_clicks``, pixels drawn from the clicks, which replace as
     many random pixels of the batch (their colour is trained too)."""
+    dynamic_rays: float = 0.5
+    """Captures over time: the fraction of each batch's pixels drawn in proportion to how much
+    they change over time (:mod:`nerfbot.data.importance`, DyNeRF's importance sampling), the
+    rest uniformly. Only frames whose camera films several time steps have such weights (a
+    multi-camera rig); 0 = uniform."""
+    dynamic_rays_debias: float = 0.5
+    """How much of the bias of those draws the loss undoes (each pixel's loss weight is
+    (uniform probability / its probability) ** this, :meth:`PixelBank.set_importance`): 1 =
+    unbiased, the changing pixels get more samples of the same total weight; 0 = DyNeRF's, they
+    also weigh more. On the dynamic scene (BENCHMARKS.md, section 4) 1 kept the whole image but
+    lost the moving objects, 0 showed them with floaters over the static scene, 0.5 kept the
+    one and most of the other."""
     device: str = "cpu"
     """torch device; the fast kernels are CPU kernels, other devices use the torch twins
     (``NERFBOT_KERNELS=torch`` forces the twins on the CPU too: :mod:`nerfbot.kernels`)."""
@@ -102,6 +114,14 @@ class TrainConfig:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
         if self.label_clicks is not None and not self.labels:
             raise ValueError("label_clicks needs labels")
+        if isinstance(self.dynamic_rays, bool) or not isinstance(self.dynamic_rays, (int, float)) \
+                or not 0.0 <= self.dynamic_rays <= 1.0:
+            raise ValueError(f"dynamic_rays must be in [0, 1], got {self.dynamic_rays!r}")
+        if isinstance(self.dynamic_rays_debias, bool) \
+                or not isinstance(self.dynamic_rays_debias, (int, float)) \
+                or not 0.0 <= self.dynamic_rays_debias <= 1.0:
+            raise ValueError(f"dynamic_rays_debias must be in [0, 1], got "
+                             f"{self.dynamic_rays_debias!r}")
         if not self.checkpoint_every_seconds >= 0:
             raise ValueError(f"checkpoint_every_seconds must be >= 0, got "
                              f"{self.checkpoint_every_seconds}")

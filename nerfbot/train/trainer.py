@@ -13,12 +13,14 @@ from importlib import metadata
 from pathlib import Path
 from typing import Callable, Optional
 
+import numpy as np
 import torch
 from torch.autograd.graph import increment_version
 from tqdm.auto import tqdm
 
 from nerfbot.data.conditioning import Conditioning, frame_conditions
 from nerfbot.data.dataset import Dataset
+from nerfbot.data.importance import importance_weights
 from nerfbot.data.labels import LabelClasses, click_maps, label_maps
 from nerfbot.data.pixels import PixelBank
 from nerfbot.data.run_dataset import run_data_fields
@@ -132,7 +134,11 @@ def batch_loss(model: Model, bank: "PixelBank", n_rays: int, generator: torch.Ge
         rays = Rays.cat([p[0] for p in parts])
         target, slot = torch.cat([p[1] for p in parts]), torch.cat([p[2] for p in parts])
     cond = None if bank.conds is None else bank.conds[slot].repeat_interleave(k, 0)
-    loss, out = model.loss(rays, target, generator, cond, rays_per_pixel=k)
+    weights = bank.last_weights
+    if weights is not None and len(parts) > 1:  # keypoint and click pixels weigh 1
+        weights = torch.cat([weights, weights.new_ones(len(target) - len(weights))])
+    loss, out = model.loss(rays, target, generator, cond, rays_per_pixel=k,
+                           pixel_weights=weights)
     if depth is not None:
         first = n_pixels * k
         span = sample_span(out, first, first + keypoints * k)
@@ -181,6 +187,8 @@ class Trainer:
         self.bank = PixelBank(dataset, dataset.indices("train"), self.device,
                               frame_conditions(dataset, conditioning))
         self.model.init_mean_color(self.bank.mean_color())
+        if conditioning.kind == "time" and config.dynamic_rays > 0:
+            self._load_importance()
         if config.depth_weight > 0:
             self.bank.load_depths()
         if config.labels:
@@ -201,6 +209,23 @@ class Trainer:
         """Per-step scalars (:mod:`nerfbot.train.scalars`), written to ``scalars.csv``."""
         self._occupied: Optional[float] = None
         self.evaluate_fn = evaluate_fn
+
+    def _load_importance(self) -> None:
+        """Draw ``dynamic_rays`` of every batch where the training frames change over time
+        (:func:`~nerfbot.data.importance.importance_weights`), when some camera films several
+        of them."""
+        weights, repeated = importance_weights(self.dataset, self.dataset.indices("train"))
+        if not repeated or not float(weights.sum()) > 0.0:
+            log.info("dynamic rays: no camera films several time steps with a change between "
+                     "them; rays are drawn uniformly")
+            return
+        self.bank.set_importance(weights, self.config.dynamic_rays,
+                                 self.config.dynamic_rays_debias)
+        top = np.sort(weights)[::-1][:max(1, len(weights) // 20)]
+        log.info("dynamic rays: %.0f%% of each batch where the images change over %d frames of "
+                 "repeated cameras (the 5%% of pixels that change most hold %.0f%% of the "
+                 "weight)", 100 * self.config.dynamic_rays, repeated,
+                 100 * float(top.sum()) / float(weights.sum()))
 
     def _load_labels(self) -> None:
         """Give the pixel bank the training frames' label maps (full, or ``label_clicks``

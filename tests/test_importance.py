@@ -1,0 +1,92 @@
+"""Importance sampling of training rays where a capture changes over time (DyNeRF): the
+weights, and the pixel bank's draws by them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from nerfbot.data import load_dataset
+from nerfbot.data.importance import temporal_weights
+from nerfbot.data.pixels import PixelBank
+
+pytestmark = pytest.mark.slow(5)  # rough single-core seconds (tests/conftest.py)
+
+
+def test_a_pixel_that_never_changes_weighs_zero_and_a_changing_one_its_temporal_variance():
+    rng = np.random.default_rng(0)
+    frames = np.repeat(rng.integers(0, 256, (1, 6, 5, 3), dtype=np.uint8), 7, axis=0)
+    frames[:, 2, 3] = rng.integers(0, 256, (7, 3))         # changes over time
+    frames[:, 4, 1, 0] = np.arange(7) * 10                   # one channel ramps
+    w = temporal_weights(list(frames))
+    assert w.shape == (7, 30) and w.dtype == np.float32
+    changing = {2 * 5 + 3, 4 * 5 + 1}
+    still = [p for p in range(30) if p not in changing]
+    assert np.all(w[:, still] == 0.0)
+    x = frames.reshape(7, 30, 3).astype(np.float64) / 255.0
+    variance = x.var(axis=0).mean(-1)                         # per pixel, over time
+    np.testing.assert_allclose(w.mean(0), variance, rtol=1e-5, atol=1e-9)
+    # within a pixel, the frames that differ most from its mean weigh most
+    ramp = w[:, 4 * 5 + 1]
+    assert ramp[0] == ramp[-1] == ramp.max() and ramp[3] == 0.0
+    # twice the change, four times the weight
+    np.testing.assert_allclose(temporal_weights(list(2 * (x.reshape(7, 6, 5, 3) - 0.5) + 0.5)),
+                               4 * temporal_weights(list(x.reshape(7, 6, 5, 3))), rtol=1e-5,
+                               atol=1e-9)
+    assert not temporal_weights([frames[0]]).any()           # one frame: nothing changes
+
+
+def test_the_bank_draws_the_important_share_in_proportion_to_the_weights(tiny_capture):
+    ds = load_dataset(tiny_capture[0])
+    bank = PixelBank(ds, ds.indices("train"))
+    weights = np.zeros(len(bank), np.float32)
+    chosen = np.array([5, 900, 4000, 7001])
+    weights[chosen] = [1.0, 2.0, 3.0, 4.0]
+    bank.set_importance(weights, 0.25)
+    generator = torch.Generator().manual_seed(0)
+    drawn, loss_weights = [], []
+    for _ in range(50):
+        bank.sample(4000, generator)
+        drawn.append(bank.last_pixels.numpy())
+        loss_weights.append(bank.last_weights.numpy())
+    drawn, loss_weights = np.stack(drawn), np.stack(loss_weights)
+    important = drawn[:, :1000].reshape(-1)                   # the first quarter of each batch
+    assert set(np.unique(important)) == set(chosen)           # weight 0 is never drawn
+    share = np.array([(important == p).mean() for p in chosen])
+    np.testing.assert_allclose(share, [0.1, 0.2, 0.3, 0.4], atol=0.01)
+    rest = drawn[:, 1000:].reshape(-1)                        # uniform over every pixel
+    assert np.isin(rest, chosen).mean() < 0.01 and len(np.unique(rest)) > 0.9 * len(bank)
+    # loss weights (1 / P) / q undo the bias: a pixel of weight 0 counts 1 / (1 - f), the
+    # chosen ones far less, and their mean over the draws is 1 (a uniform batch's)
+    q = 0.75 / len(bank) + 0.25 * weights / weights.sum()
+    np.testing.assert_allclose(loss_weights.reshape(-1), (1 / len(bank)) / q[drawn.reshape(-1)],
+                               rtol=1e-5)
+    assert np.all(loss_weights[np.isin(drawn, chosen, invert=True)] == np.float32(1 / 0.75))
+    assert abs(loss_weights.mean() - 1.0) < 0.01
+
+
+def test_importance_weights_refuse_bad_input(tiny_capture):
+    ds = load_dataset(tiny_capture[0])
+    bank = PixelBank(ds, ds.indices("train"))
+    with pytest.raises(ValueError, match="expected"):
+        bank.set_importance(np.ones(3), 0.5)
+    with pytest.raises(ValueError, match="finite and >= 0"):
+        bank.set_importance(-np.ones(len(bank)), 0.5)
+    with pytest.raises(ValueError, match="zero on every"):
+        bank.set_importance(np.zeros(len(bank)), 0.5)
+    with pytest.raises(ValueError, match=r"\[0, 1\]"):
+        bank.set_importance(np.ones(len(bank)), 1.5)
+
+
+def test_the_photometric_loss_weighs_each_pixel():
+    from nerfbot.models.base import photometric_loss
+
+    generator = torch.Generator().manual_seed(0)
+    rgb, target = torch.rand(8, 3, generator=generator), torch.rand(2, 3, generator=generator)
+    plain = photometric_loss(rgb, target, rays_per_pixel=4)
+    means = rgb.reshape(2, 4, 3).mean(1)
+    torch.testing.assert_close(plain, torch.nn.functional.mse_loss(means, target))
+    torch.testing.assert_close(photometric_loss(rgb, target, 4, torch.ones(2)), plain)
+    weighted = photometric_loss(rgb, target, 4, torch.tensor([3.0, 0.0]))
+    torch.testing.assert_close(weighted, 1.5 * (means[0] - target[0]).square().mean())
