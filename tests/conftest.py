@@ -51,3 +51,48 @@ def tiny_capture(tmp_path_factory):
     rig = default_rig("tabletop", count=TINY_VIEWS, width=TINY_SIZE, height=TINY_SIZE, seed=0)
     capture("tabletop", rig, make_test_rig(rig, TINY_TEST_VIEWS), out, progress=False)
     return out, rig
+
+
+#: The look of the toy MJCF scenes of the tests: a gradient sky, a checkered 1 m floor, red and
+#: blue materials, one light from above and a headlight with its ambient term only (static
+#: lighting). ``{model}``, ``{custom}``, ``{bodies}`` and ``{extra}`` are filled by
+#: :func:`toy_scene`.
+_TOY_SCENE = """
+<mujoco model="{model}">
+  {options}
+  <custom>{custom}</custom>
+  <visual>
+    <headlight active="1" ambient="0.35 0.35 0.35" diffuse="0 0 0" specular="0 0 0"/>
+  </visual>
+  <asset>
+    <texture name="sky" type="skybox" builtin="gradient" rgb1="0.45 0.65 0.9" rgb2="0.9 0.9 0.95"
+             width="64" height="64"/>
+    <texture name="grid" type="2d" builtin="checker" rgb1="0.8 0.8 0.8" rgb2="0.55 0.55 0.55"
+             width="64" height="64"/>
+    <material name="grid" texture="grid" texrepeat="4 4" specular="0"/>
+    <material name="red" rgba="0.9 0.15 0.1 1" specular="0"/>
+    <material name="blue" rgba="0.1 0.25 0.9 1" specular="0"/>
+  </asset>
+  <worldbody>
+    <light pos="0 0 3" dir="0 0 -1" directional="true" diffuse="0.6 0.6 0.6" specular="0 0 0"/>
+    <geom name="floor" type="box" size="0.5 0.5 0.01" pos="0 0 -0.01" material="grid"/>
+    {bodies}
+  </worldbody>
+  {extra}
+</mujoco>
+"""
+
+
+def toy_scene(model: str, bodies: str, custom: str = "", options: str = "",
+              extra: str = "") -> str:
+    """MJCF text of a toy scene with the tests' look (:data:`_TOY_SCENE`): ``bodies`` in the
+    worldbody beside the floor, ``custom`` inside <custom>, ``options`` before it (e.g.
+    <option .../>), ``extra`` after the worldbody (e.g. a keyframe)."""
+    return _TOY_SCENE.format(model=model, bodies=bodies, custom=custom, options=options,
+                             extra=extra)
+
+
+@pytest.fixture(scope="session")
+def toy_mjcf():
+    """:func:`toy_scene`, for tests that write their own small MJCF scene."""
+    return toy_scene

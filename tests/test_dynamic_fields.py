@@ -193,29 +193,7 @@ def test_methods_refuse_the_wrong_conditioning(tiny_capture, rollout):
         build_model("tnerf", AABB, conditioning=Conditioning())
 
 
-TOY_ROLLOUT = """
-<mujoco model="toy_rollout">
-  <option gravity="0 0 0"/>
-  <custom>
-    <text name="nerfbot_capture" data="dynamic"/>
-    <numeric name="nerfbot_duration" data="1.0"/>
-    <text name="nerfbot_objects" data="cube ball"/>
-  </custom>
-  <visual>
-    <headlight active="1" ambient="0.35 0.35 0.35" diffuse="0 0 0" specular="0 0 0"/>
-  </visual>
-  <asset>
-    <texture name="sky" type="skybox" builtin="gradient" rgb1="0.45 0.65 0.9" rgb2="0.9 0.9 0.95"
-             width="64" height="64"/>
-    <texture name="grid" type="2d" builtin="checker" rgb1="0.8 0.8 0.8" rgb2="0.55 0.55 0.55"
-             width="64" height="64"/>
-    <material name="grid" texture="grid" texrepeat="4 4" specular="0"/>
-    <material name="red" rgba="0.9 0.15 0.1 1" specular="0"/>
-    <material name="blue" rgba="0.1 0.25 0.9 1" specular="0"/>
-  </asset>
-  <worldbody>
-    <light pos="0 0 3" dir="0 0 -1" directional="true" diffuse="0.6 0.6 0.6" specular="0 0 0"/>
-    <geom name="floor" type="box" size="0.5 0.5 0.01" pos="0 0 -0.01" material="grid"/>
+TOY_MOVERS = """
     <body name="cube" pos="-0.3 -0.15 0.12">
       <joint name="cube_slide" type="slide" axis="1 0 0" damping="0"/>
       <geom name="cube" type="box" size="0.09 0.09 0.09" material="red" contype="0"
@@ -225,13 +203,16 @@ TOY_ROLLOUT = """
       <joint name="ball_slide" type="slide" axis="0 1 0" damping="0"/>
       <geom name="ball" type="sphere" size="0.08" material="blue" contype="0" conaffinity="0"/>
     </body>
-  </worldbody>
-  <keyframe><key name="init" qpos="0 0" qvel="0.6 0.6"/></keyframe>
-</mujoco>
 """
+TOY_ROLLOUT = dict(
+    custom="""<text name="nerfbot_capture" data="dynamic"/>
+    <numeric name="nerfbot_duration" data="1.0"/>
+    <text name="nerfbot_objects" data="cube ball"/>""",
+    options='<option gravity="0 0 0"/>',
+    extra='<keyframe><key name="init" qpos="0 0" qvel="0.6 0.6"/></keyframe>')
 
 
-def test_kplanes_shows_the_moving_objects_of_a_toy_rollout(tmp_path):
+def test_kplanes_shows_the_moving_objects_of_a_toy_rollout(tmp_path, toy_mjcf):
     """A cube and a ball slide across a floor (0.6 m/s, 8 fixed cameras, 12 time steps, every
     4th held out): kplanes renders them where they are in the training frames, and at the
     held-out times better than a static field, which can only average them away."""
@@ -241,7 +222,7 @@ def test_kplanes_shows_the_moving_objects_of_a_toy_rollout(tmp_path):
     from sims.sequence import sequence_rig
 
     scene = tmp_path / "toy.xml"
-    scene.write_text(TOY_ROLLOUT)
+    scene.write_text(toy_mjcf("toy_rollout", TOY_MOVERS, **TOY_ROLLOUT))
     rig = sequence_rig(scene, "multiview", 8, size=48, radius=1.8)
     data = capture_dynamic(scene, rig, tmp_path / "data", frames=12, test_every=4,
                            progress=False)

@@ -212,37 +212,19 @@ def test_the_labels_locate_an_object_where_it_is(runs, tmp_path):
         locate_class(model, "unicorn")
 
 
-TOY_SCENE = """
-<mujoco model="toy_labels">
-  <custom><text name="nerfbot_objects" data="red_box blue_box"/></custom>
-  <visual>
-    <headlight active="1" ambient="0.35 0.35 0.35" diffuse="0 0 0" specular="0 0 0"/>
-  </visual>
-  <asset>
-    <texture name="sky" type="skybox" builtin="gradient" rgb1="0.45 0.65 0.9" rgb2="0.9 0.9 0.95"
-             width="64" height="64"/>
-    <texture name="grid" type="2d" builtin="checker" rgb1="0.8 0.8 0.8" rgb2="0.55 0.55 0.55"
-             width="64" height="64"/>
-    <material name="grid" texture="grid" texrepeat="4 4" specular="0"/>
-    <material name="red" rgba="0.9 0.15 0.1 1" specular="0"/>
-    <material name="blue" rgba="0.1 0.25 0.9 1" specular="0"/>
-  </asset>
-  <worldbody>
-    <light pos="0 0 3" dir="0 0 -1" directional="true" diffuse="0.6 0.6 0.6" specular="0 0 0"/>
-    <geom name="floor" type="box" size="0.5 0.5 0.01" pos="0 0 -0.01" material="grid"/>
+TOY_BOXES = """
     <geom name="red_box" type="box" size="0.12 0.12 0.12" pos="-0.2 0 0.12" material="red"/>
     <geom name="blue_box" type="box" size="0.1 0.1 0.15" pos="0.2 0.1 0.15" material="blue"/>
-  </worldbody>
-</mujoco>
 """
 
 
-def test_twenty_clicks_per_class_come_near_full_labels_on_a_toy_scene(tmp_path):
+def test_twenty_clicks_per_class_come_near_full_labels_on_a_toy_scene(tmp_path, toy_mjcf):
     from sims.capture import capture
     from sims.rigs import default_rig, make_test_rig
 
     scene = tmp_path / "toy.xml"
-    scene.write_text(TOY_SCENE)
+    scene.write_text(toy_mjcf("toy_labels", TOY_BOXES,
+                              custom='<text name="nerfbot_objects" data="red_box blue_box"/>'))
     # close enough that the boxes fill a fifth of each view
     rig = default_rig(scene, count=24, width=48, height=48, seed=0, radius=1.8)
     data = tmp_path / "toy"

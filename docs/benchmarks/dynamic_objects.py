@@ -80,9 +80,12 @@ def score(run: Path, dataset) -> tuple[dict, object]:
     return row, model
 
 
-def crop_box(masks: list[np.ndarray], pad: int = 6) -> tuple[int, int, int, int]:
-    ys, xs = np.nonzero(np.any(masks, axis=0))
-    h, w = masks[0].shape
+def crop_box(mask: np.ndarray, pad: int = 6) -> tuple[int, int, int, int]:
+    """(y0, y1, x0, x1) around the mask's pixels plus ``pad``; the whole image when empty."""
+    h, w = mask.shape
+    if not mask.any():
+        return 0, h, 0, w
+    ys, xs = np.nonzero(mask)
     return (max(0, ys.min() - pad), min(h, ys.max() + pad + 1),
             max(0, xs.min() - pad), min(w, xs.max() + pad + 1))
 
@@ -99,7 +102,7 @@ def sheet(dataset, models: dict, rows: int = 4) -> np.ndarray:
             rgb = render_image(model, dataset.cameras([i]), 0, cond=conds[i])["rgb"]
             images.append(rgb)
             labels.append(f"{name} {pooled_psnr([(rgb, gt, mask)]):.1f} dB obj")
-        y0, y1, x0, x1 = crop_box([mask])
+        y0, y1, x0, x1 = crop_box(mask)
         crops = [cv2.resize(np.ascontiguousarray(im[y0:y1, x0:x1]), (gt.shape[1], gt.shape[0]),
                             interpolation=cv2.INTER_NEAREST) for im in images]
         out.append(labelled_row(images, labels, scale=2))

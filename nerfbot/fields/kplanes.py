@@ -115,7 +115,8 @@ class KPlanesField(Field):
         h = self.dynamic_mlp(self.planes(torch.cat([xn, t], -1)))
         sigma = trunc_exp(h[:, 0] + self.dynamic_bias)
         sigma = torch.where(self.static.normalize.inside(x), sigma, torch.zeros_like(sigma))
-        if self.training and torch.is_grad_enabled():  # a training render: kept for the loss
+        if self.kconfig.dynamic_sparsity_weight > 0 and self.training and torch.is_grad_enabled():
+            # a training render: kept for the loss
             self._opacity = (1.0 - torch.exp(-sigma * self.cell)).mean()
         return sigma, h[:, 1:]
 

@@ -221,7 +221,8 @@ class Trainer:
             return
         self.bank.set_importance(weights, self.config.dynamic_rays,
                                  self.config.dynamic_rays_debias)
-        top = np.sort(weights)[::-1][:max(1, len(weights) // 20)]
+        k = max(1, len(weights) // 20)
+        top = np.partition(weights, len(weights) - k)[-k:]
         log.info("dynamic rays: %.0f%% of each batch where the images change over %d frames of "
                  "repeated cameras (the 5%% of pixels that change most hold %.0f%% of the "
                  "weight)", 100 * self.config.dynamic_rays, repeated,
