@@ -6,6 +6,7 @@ the JSON field that named the file.
 
 from __future__ import annotations
 
+import threading
 from functools import lru_cache
 from pathlib import Path
 from typing import Optional
@@ -18,6 +19,11 @@ from nerfbot.data.intrinsics import Intrinsics
 
 #: Millimetres to metres, the default unit of 16-bit depth PNGs.
 DEFAULT_DEPTH_SCALE = 1e-3
+
+# np.load parses a .npy header with ast.literal_eval, and CPython 3.11's AST constructor keeps
+# its recursion depth per interpreter, not per thread (gh-106905): two frames parsed at once on
+# the readers' threads raise "SystemError: AST constructor recursion depth mismatch".
+_NPY_LOCK = threading.Lock()
 
 
 def _imread(path: Path, where: str, what: str) -> np.ndarray:
@@ -76,7 +82,8 @@ def _check_shape(arr: np.ndarray, shape: tuple, where: str, what: str, path: Pat
 
 def _load_npy(path: Path, where: str, what: str) -> np.ndarray:
     try:
-        return np.load(path, allow_pickle=False)
+        with _NPY_LOCK:
+            return np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError) as e:
         raise DatasetError(f"{where}: cannot read {what} file {path}: {e}") from None
 
