@@ -117,6 +117,8 @@ _non_negative_float = _number(float, lambda v: v >= 0.0, "a number >= 0")
 _fraction = _number(float, lambda v: 0.0 <= v <= 1.0, "a number in [0, 1]")
 #: A time in [0, 1] (the span of a dynamic capture).
 _unit_time = _number(float, lambda v: 0.0 <= v <= 1.0, "a time in [0, 1]")
+#: A TCP port; 0 lets the system pick a free one.
+_port = _number(int, lambda v: 0 <= v <= 65535, "a port in [0, 65535]")
 
 
 #: The longest image side a command renders (pixels); larger requests are refused up front
@@ -1049,6 +1051,82 @@ def cmd_bench(args) -> int:
     return 0
 
 
+def _view_start(args, model, ds):
+    """(StartView, image height) where browsers start: ``--camera split:K`` of the dataset
+    (default the first test view, else the first training view), else an orbit view framed
+    from the bounds when the dataset is unknown."""
+    import numpy as np
+
+    from nerfbot.app.viewer import StartView
+    from nerfbot.ops.cameras import orbit_poses
+
+    fov, _, height, target, radius, elevation = _view_intrinsics(model, None, ds)
+    if ds is None:
+        if args.camera:
+            raise UsageError(f"--camera {args.camera}: the run's dataset is not found; give "
+                             "--data")
+        pose = orbit_poses(target, radius, elevation, 1)[0]
+        return StartView.of_camera(pose, fov, radius), height
+    split, _, k = (args.camera or ("test:0" if ds.splits.get("test") else "train:0")).partition(":")
+    try:
+        idx = ds.indices(split)[int(k or 0)]
+    except (IndexError, ValueError):
+        raise UsageError(f"--camera {args.camera}: expected SPLIT:K with K below the split's "
+                         f"{len(ds.splits.get(split, []))} views ({ds.split_sizes()})") from None
+    c2w = ds.c2w[idx]
+    fov = float(np.degrees(2 * np.arctan(0.5 * ds.sizes[idx][1] / ds.intrinsics[idx, 1])))
+    ahead = float(np.dot(target - c2w[:3, 3], -c2w[:3, 2]))
+    return StartView.of_camera(c2w, fov, ahead if ahead > 0 else radius), int(ds.sizes[idx][1])
+
+
+def cmd_view(args) -> int:
+    import signal
+    import threading
+
+    from nerfbot.app.viewer import Settings, Viewer
+    from nerfbot.data.conditioning import Conditioning
+    from nerfbot.query.density import default_density_threshold
+    from nerfbot.train.runs import load_model
+
+    run = Path(args.run)
+    if args.depth_mode == "threshold" and args.threshold is None:
+        mode, threshold = "threshold", None  # the default density below
+    else:
+        mode, threshold, _ = _render_depth_query(args, run)
+    model, info = load_model(run, args.device)
+    ds = _render_dataset(args, run, info, needed=bool(args.data or args.camera))
+    conditioning = Conditioning.from_dict(info["spec"].get("conditioning"))
+    start, height = _view_start(args, model, ds)
+    if threshold is None:
+        threshold = default_density_threshold(model.aabb.detach().cpu().numpy())
+    cond = None if conditioning.is_static else (
+        conditioning.vector(0.0, {}) if conditioning.kind == "time" else conditioning.vector())
+    train = None
+    if ds is not None and not args.no_cameras:
+        train = ds.cameras(ds.indices("train") if ds.splits.get("train") else list(range(len(ds))))
+    settings = Settings(depth_mode=mode, threshold=float(threshold), condition=cond,
+                        height=args.resolution or height)
+    path_file = args.path_file or run / "camera_path.json"
+    viewer = Viewer(model, conditioning, train_cameras=train, start=start, settings=settings,
+                    path_file=path_file, geometry=args.geometry or (),
+                    title=f"{run.name}: {info['spec']['method']}, step {info['step']}",
+                    host=args.host, port=args.port)
+    logging.getLogger("websockets").setLevel(logging.WARNING)
+    print(f"nerfbot view: {run} at http://{args.host}:{viewer.port} (Ctrl-C to stop); "
+          f"saved cameras go to {path_file}", flush=True)
+    stopping = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stopping.set())  # stop cleanly when terminated
+    try:
+        while not stopping.wait(0.5):
+            pass
+    except KeyboardInterrupt:
+        pass
+    finally:
+        viewer.stop()
+    print("nerfbot view: stopped", flush=True)
+    return 0
+
+
 # -- parser ----------------------------------------------------------------------------------
 def _capture_arguments(parser: argparse.ArgumentParser) -> None:
     from sims.cli import add_capture_arguments
@@ -1291,6 +1369,34 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
                       help="--sweep: the camera moves through K orbit positions (default 1: "
                            "a fixed camera)")
     p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser("view", help="open a run in the browser (viser): the field rendered "
+                                    "at your camera, training cameras, bounds, geometry files")
+    p.add_argument("run", type=Path)
+    p.add_argument("--port", type=_port, default=8080, help="default 8080; 0 picks a free one")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to listen on (default: this machine only; 0.0.0.0 for all)")
+    p.add_argument("--camera", default=None, metavar="SPLIT:K",
+                   help="start at this dataset view, e.g. test:0 (default: the first test view)")
+    p.add_argument("--resolution", type=_image_side, default=None, metavar="H",
+                   help="height of still frames in pixels (default: the training images'); "
+                        "frames while the camera moves have a quarter of it")
+    p.add_argument("--geometry", type=Path, action="append", metavar="FILE",
+                   help="a mesh or point cloud to show with the field (e.g. from nerfbot "
+                        "export; .ply .obj .glb; repeatable)")
+    p.add_argument("--path-file", type=Path, default=None, metavar="FILE",
+                   help="where 'save camera' appends keyframes for render --poses (default "
+                        "RUN/camera_path.json)")
+    p.add_argument("--no-cameras", action="store_true", help="do not draw the training cameras")
+    p.add_argument("--depth-mode", default=None, choices=("expected", "median", "threshold"),
+                   help="initial depth query (default: the run's auto.json default, else "
+                        "expected)")
+    p.add_argument("--threshold", type=float, default=None, metavar="M",
+                   help="initial density threshold of threshold depth (1/m)")
+    p.add_argument("--data", type=Path, default=None,
+                   help="dataset of the training cameras (default: the run's)")
+    p.add_argument("--device", type=_device, default="cpu")
+    p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("export", help="a run's geometry as files: point cloud, mesh or TSDF "
                                       "mesh, in world metres")
