@@ -164,6 +164,17 @@ def test_quickstart_runs_and_shows_plots(quickstart):
     assert len(figures) >= 5, f"expected at least 5 figures, got {len(figures)}"
 
 
+def test_quickstart_embeds_a_video_browsers_play(quickstart):
+    """The orbit video is H.264 / yuv420p (what browsers and Jupyter play), and it is embedded
+    in the notebook as an HTML5 video."""
+    nb, r = quickstart
+    assert (r["video"]["codec"], r["video"]["pix_fmt"], r["video"]["frames"]) == \
+        ("h264", "yuv420p", 36)
+    html = [o.data["text/html"] for c in nb.cells if c.cell_type == "code" for o in c.outputs
+            if o.output_type in ("display_data", "execute_result") and "text/html" in o.data]
+    assert any("<video" in h and "data:video/mp4;base64," in h for h in html)
+
+
 def test_quickstart_image_quality(quickstart):
     _, r = quickstart
     assert (r["size_px"], r["train_views"], r["test_views"]) == (32, 12, 4)
