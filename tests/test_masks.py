@@ -58,9 +58,9 @@ def _paint(root: Path, region, colour=MAGENTA, depth_m: float | None = None) -> 
         img[region] = colour[::-1]
         cv2.imwrite(str(path), img)
         if depth_m is not None:
-            depth = np.load(root / frame["depth_file_path"])
+            depth = np.load(root / frame["nerfbot_depth_file_path"])
             depth[region] = depth_m
-            np.save(root / frame["depth_file_path"], depth)
+            np.save(root / frame["nerfbot_depth_file_path"], depth)
 
 
 def _drawn_pixels(bank: PixelBank, n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:

@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import shutil
 from dataclasses import replace
 
 import cv2
@@ -16,6 +17,7 @@ import numpy as np
 import pytest
 
 import sims  # noqa: F401  (selects the GL backend before mujoco is imported)
+from nerfbot.data import load_dataset
 from nerfbot.ops.cameras import check_pose, look_at
 from sims import capture as capture_mod
 from sims.camera import CaptureCamera, Frame
@@ -188,7 +190,7 @@ def test_capture_writes_nerfstudio_transforms_and_files(dataset):
         assert np.abs(np.array(fr["transform_matrix"]) - c2w).max() < 1e-6
         img = cv2.imread(str(out / fr["file_path"]), cv2.IMREAD_UNCHANGED)
         assert img.shape == (SIZE, SIZE, 3) and img.dtype == np.uint8
-        depth = np.load(out / fr["depth_file_path"])
+        depth = np.load(out / fr["nerfbot_depth_file_path"])
         seg = np.load(out / fr["segmentation_path"])
         assert depth.shape == seg.shape == (SIZE, SIZE)
         assert depth.dtype == np.float32 and seg.dtype == np.int32
@@ -200,7 +202,7 @@ def test_depth_is_finite_on_the_table_and_inf_on_sky(dataset, tabletop):
     top = geom_id(tabletop[0], "table_top")
     sky_pixels = 0
     for fr in meta["frames"]:
-        depth = np.load(out / fr["depth_file_path"])
+        depth = np.load(out / fr["nerfbot_depth_file_path"])
         seg = np.load(out / fr["segmentation_path"])
         assert (seg == top).sum() > 20
         table = depth[seg == top]
@@ -210,6 +212,49 @@ def test_depth_is_finite_on_the_table_and_inf_on_sky(dataset, tabletop):
         assert np.isfinite(depth[seg >= 0]).all()
         sky_pixels += int((seg == -1).sum())
     assert sky_pixels > 0
+
+
+def test_nerfstudio_reads_the_depth_in_metres(dataset):
+    """nerfstudio's own reading rules applied to the written files: ``transforms.json`` has
+    the intrinsics and every frame a ``depth_file_path`` (nerfstudio takes depth for all frames
+    or none), which it reads as ``cv2.imread(path, IMREAD_ANYDEPTH) * depth_unit_scale_factor``
+    (1e-3 by default; no such key is written, so its default applies). That gives the z-depth in
+    metres to half a millimetre, and 0 (nerfstudio's "no depth") where a ray hits nothing. The
+    exact float depth stays beside it for nerfbot."""
+    out, meta, _ = dataset
+    assert "depth_unit_scale_factor" not in meta
+    assert all(k in meta for k in ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_model"))
+    assert all("depth_file_path" in fr for fr in meta["frames"])
+    names = {fr["file_path"] for fr in meta["frames"]}
+    for split in ("train", "val", "test"):
+        assert set(meta[f"{split}_filenames"]) <= names
+    for fr in meta["frames"]:
+        raw = cv2.imread(str(out / fr["depth_file_path"]), cv2.IMREAD_ANYDEPTH)
+        assert raw is not None and raw.dtype == np.uint16
+        read = raw.astype(np.float64) * 1e-3
+        exact = np.load(out / fr["nerfbot_depth_file_path"]).astype(np.float64)
+        hit = np.isfinite(exact)
+        assert hit.any() and (~hit).any()
+        assert np.abs(read[hit] - exact[hit]).max() <= 0.5e-3 + 1e-9
+        assert (read[~hit] == 0).all()
+
+
+def test_nerfbot_reads_the_exact_depth_and_a_millimetre_png_alone(dataset, tmp_path):
+    """nerfbot loads the exact depth (``inf`` kept where nothing is hit); a copy whose frames name
+    only the 16-bit PNG reads it in millimetres (unknown where 0)."""
+    out, meta, _ = dataset
+    exact = load_dataset(out)
+    assert np.isinf(exact.depths[0]).any()
+    alone = tmp_path / "png_only"
+    shutil.copytree(out, alone)
+    doc = json.loads((alone / "transforms.json").read_text())
+    for fr in doc["frames"]:
+        fr.pop("nerfbot_depth_file_path")
+    (alone / "transforms.json").write_text(json.dumps(doc))
+    png = load_dataset(alone)
+    hit = np.isfinite(exact.depths[0])
+    assert np.abs(png.depths[0][hit] - exact.depths[0][hit]).max() <= 0.5e-3 + 1e-6
+    assert np.isnan(png.depths[0][~hit]).all()
 
 
 @pytest.fixture(scope="module")
@@ -235,7 +280,7 @@ def test_projected_geom_centres_land_on_their_geom(closeups, tabletop):
     model, data = tabletop
     hits = total = 0
     for k, fr in enumerate(meta["frames"]):
-        depth = np.load(out / fr["depth_file_path"])
+        depth = np.load(out / fr["nerfbot_depth_file_path"])
         seg = np.load(out / fr["segmentation_path"])
         for name in OBJECTS:
             gid = geom_id(model, name)
@@ -261,7 +306,7 @@ def test_depth_back_projects_onto_the_sphere_surface(closeups, tabletop):
     centre, radius = data.geom_xpos[gid], model.geom_size[gid, 0]
     checked = 0
     for fr in meta["frames"]:
-        depth = np.load(out / fr["depth_file_path"])
+        depth = np.load(out / fr["nerfbot_depth_file_path"])
         seg = np.load(out / fr["segmentation_path"])
         inner = cv2.erode((seg == gid).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
         rows, cols = np.nonzero(inner)

@@ -1347,7 +1347,8 @@ def _(sb):
 
 @case("F16", F, "--depth-weight on a dataset without depth maps", mentions=("depth",))
 def _(sb):
-    edit(sb, lambda d: [f.pop("depth_file_path") for f in d["frames"]])
+    edit(sb, lambda d: [(f.pop("depth_file_path"), f.pop("nerfbot_depth_file_path"))
+                        for f in d["frames"]])
     return TRAIN1 + ["--depth-weight", "0.1"]
 
 

@@ -19,6 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
+from nerfbot.data.spec import EXACT_DEPTH_FIELD
+from nerfbot.data.writers import write_depth_files
+
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -38,10 +41,10 @@ def main(argv=None) -> int:
         c2w = np.asarray(frame["transform_matrix"], float)
         c2w[:3, 3] = s * c2w[:3, 3] + t
         frame["transform_matrix"] = c2w.tolist()
-        depth = frame.get("depth_file_path")
-        if depth:
-            path = args.dst / depth
-            np.save(path, (np.load(path) * s).astype(np.float32))
+        if frame.get(EXACT_DEPTH_FIELD):  # the exact depth and nerfstudio's millimetre PNG
+            stem = str(Path(frame[EXACT_DEPTH_FIELD]).with_suffix(""))
+            frame.update(write_depth_files(args.dst, stem,
+                                           np.load(args.src / frame[EXACT_DEPTH_FIELD]) * s))
     scene = meta.get("scene") or {}
     if "bounds" in scene:
         scene["bounds"] = (s * np.asarray(scene["bounds"], float) + t).tolist()

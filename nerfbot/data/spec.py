@@ -225,6 +225,13 @@ def joints_value(value: Any, where: str) -> dict:
     return {str(k): number(v, f"{where}.{k}") for k, v in value.items()}
 
 
+#: The frame field of the exact z-depth nerfbot writes beside nerfstudio's ``depth_file_path``:
+#: float32 ``.npy`` in metres, ``inf`` where no surface is hit. Read in preference to
+#: ``depth_file_path`` (a 16-bit PNG in millimetres, which nerfstudio reads with its default
+#: ``depth_unit_scale_factor`` of 1e-3, and which cannot hold ``inf`` or depths past 65.535 m).
+EXACT_DEPTH_FIELD = "nerfbot_depth_file_path"
+
+
 def camera_fields(obj: dict, where: str) -> dict:
     """The intrinsics / distortion keys of ``obj`` as key -> (value, "<where><key>")."""
     return {k: (obj[k], f"{where}{k}") for k in CAMERA_KEYS if k in obj}
@@ -236,7 +243,8 @@ def parse_frame(frame: Any, i: int, json_path: Path, root: Path, global_camera: 
     """Validate ``frames[i]`` of ``json_path`` (a dict) into a :class:`FrameSpec`.
 
     Reads the fields shared by all formats: ``file_path``, ``transform_matrix``, per-frame
-    intrinsics, ``depth_file_path`` / ``depth_path``, ``mask_path``, ``segmentation_path``,
+    intrinsics, ``nerfbot_depth_file_path`` (else ``depth_file_path`` / ``depth_path``),
+    ``mask_path``, ``segmentation_path``,
     ``sensor_depth_file_path``, ``sparse_depth_file_path``, ``time`` and ``joints``. Files named
     by the frame must exist inside ``root``.
     """
@@ -258,7 +266,7 @@ def parse_frame(frame: Any, i: int, json_path: Path, root: Path, global_camera: 
         per_frame_intrinsics=any(k in frame for k in PER_FRAME_INTRINSIC_KEYS),
         group=str(json_path), depth_scale=depth_scale,
     )
-    for field in ("depth_file_path", "depth_path"):
+    for field in (EXACT_DEPTH_FIELD, "depth_file_path", "depth_path"):
         if frame.get(field) is not None:
             spec.depth_path = existing_file(root, frame[field], f"{where}.{field}", "depth")
             spec.depth_field = field

@@ -1,8 +1,7 @@
 """Writers of posed-image datasets on disk: nerfstudio ``transforms.json`` and Blender synthetic.
 
-Both writers stream: :meth:`add_frame` writes a frame's image (PNG), z-depth (float32 ``.npy``,
-metres, ``inf`` = no surface) and segmentation (int32 ``.npy``, MuJoCo geom ids, -1 = none) at
-once, and :meth:`finish` writes the JSON file(s) atomically (temporary file + ``os.replace``).
+Both writers stream: :meth:`add_frame` writes a frame's image (PNG), z-depth and segmentation
+(int32 ``.npy``, MuJoCo geom ids, -1 = none) at once, and :meth:`finish` writes the JSON file(s) atomically (temporary file + ``os.replace``).
 Poses are c2w 4x4 in the OpenGL convention; they are written with full float precision
 (``repr`` of float64), so reading them back gives the same numbers.
 
@@ -11,9 +10,16 @@ Layouts::
     nerfstudio/                           blender/
       transforms.json                       transforms_train.json, transforms_test.json
       images/frame_00000.png                train/r_0.png, test/r_0.png
-      depth/frame_00000.npy                 train/r_0_depth.npy
+      depth/frame_00000.png                 train/r_0_depth.npy
+      depth/frame_00000.npy
       segmentation/frame_00000.npy          train/r_0_seg.npy
       sensor_depth/frame_00000.npy          train/r_0_sensor_depth.npy   (optional)
+
+Depth, nerfstudio: ``depth_file_path`` is a 16-bit PNG in millimetres (0 = no surface or
+beyond 65.535 m), which nerfstudio's dataparser reads at its default ``depth_unit_scale_factor``
+(1e-3); the exact z-depth (float32 ``.npy``, metres, ``inf`` = no surface) is
+``nerfbot_depth_file_path``, which nerfbot reads first. Blender (whose nerfstudio parser reads
+no depth): ``depth_file_path`` is the float32 ``.npy``.
 
 nerfstudio: intrinsics are global (``fl_x, fl_y, cx, cy, w, h``, ``camera_model: OPENCV`` with
 zero distortion); ``train_filenames`` / ``val_filenames`` / ``test_filenames`` list ``file_path``
@@ -37,6 +43,7 @@ from typing import Optional
 import cv2
 import numpy as np
 
+from nerfbot.data.spec import EXACT_DEPTH_FIELD
 from nerfbot.ops.cameras import check_pose
 
 FORMATS = ("nerfstudio", "blender")
@@ -118,6 +125,31 @@ def write_png(path: Path, rgb: np.ndarray) -> None:
         raise OSError(f"could not write image {path}")
 
 
+#: The largest depth a 16-bit millimetre PNG holds, metres.
+DEPTH_PNG_MAX_M = 65.535
+
+
+def depth_to_mm(depth: np.ndarray) -> np.ndarray:
+    """(H, W) z-depth in metres -> (H, W) uint16 millimetres, rounded; 0 where the depth is not
+    finite, not positive, or beyond :data:`DEPTH_PNG_MAX_M` (nerfstudio's "no depth")."""
+    depth = np.asarray(depth, dtype=np.float64)
+    ok = np.isfinite(depth) & (depth > 0) & (depth <= DEPTH_PNG_MAX_M)
+    return np.where(ok, np.rint(np.where(ok, depth, 0.0) * 1000.0), 0).astype(np.uint16)
+
+
+def write_depth_files(root: Path, stem: str, depth: np.ndarray) -> dict:
+    """Write a frame's z-depth (H, W, metres) as ``<root>/<stem>.png`` (16-bit millimetres)
+    and ``<root>/<stem>.npy`` (exact float32); returns the frame fields naming them
+    (``depth_file_path`` and :data:`~nerfbot.data.spec.EXACT_DEPTH_FIELD`)."""
+    png, npy = f"{stem}.png", f"{stem}.npy"
+    path = Path(root) / png
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), depth_to_mm(depth)):
+        raise OSError(f"could not write depth image {path}")
+    _save_npy(Path(root) / npy, np.asarray(depth, dtype=np.float32))
+    return {"depth_file_path": png, EXACT_DEPTH_FIELD: npy}
+
+
 def _check_frame(rgb, depth, segmentation, width: int, height: int, where: str):
     rgb = np.asarray(rgb)
     if rgb.shape != (height, width, 3) or rgb.dtype != np.uint8:
@@ -194,8 +226,7 @@ class NerfstudioWriter:
         entry = {"file_path": f"images/{stem}.png", "transform_matrix": pose.tolist()}
         write_png(self.root / entry["file_path"], rgb)
         if depth is not None:
-            entry["depth_file_path"] = f"depth/{stem}.npy"
-            _save_npy(self.root / entry["depth_file_path"], depth)
+            entry.update(write_depth_files(self.root, f"depth/{stem}", depth))
         if segmentation is not None:
             entry["segmentation_path"] = f"segmentation/{stem}.npy"
             _save_npy(self.root / entry["segmentation_path"], segmentation)

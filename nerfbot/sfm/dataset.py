@@ -44,8 +44,8 @@ from nerfbot.data.colmap import image_c2w
 from nerfbot.data.errors import DatasetError
 from nerfbot.data.intrinsics import resolve_intrinsics
 from nerfbot.data.readers import default_splits, parse_dataset
-from nerfbot.data.spec import IMAGE_EXTENSIONS, normalise_rel
-from nerfbot.data.writers import write_json_atomic
+from nerfbot.data.spec import EXACT_DEPTH_FIELD, IMAGE_EXTENSIONS, normalise_rel
+from nerfbot.data.writers import write_depth_files, write_json_atomic
 from nerfbot.ops.alignment import PoseErrors, Similarity, pose_errors
 from nerfbot.sfm.keypoints import image_keypoints
 from nerfbot.sfm.pipeline import (CameraPrior, SfmOptions, SfmResult, run_sfm,
@@ -129,7 +129,8 @@ def dataset_input(path: Path) -> SfmInput:
                                "structure from motion here shares one camera across images")
         names.append(name)
         true_c2w[name] = spec.c2w
-        extra = {field: spec_path(spec, attr, root) for attr, field in _COMPANIONS
+        extra = {(spec.depth_field if attr == "depth_path" else field):
+                 spec_path(spec, attr, root) for attr, field in _COMPANIONS
                  if getattr(spec, attr) is not None}
         if spec.time is not None:
             extra["time"] = spec.time
@@ -259,20 +260,28 @@ def _resize_nearest(array: np.ndarray, width: int, height: int) -> np.ndarray:
     return array[rows[:, None], cols[None, :]]
 
 
-def _copy_companion(src: Path, dst: Path, downscale: int) -> None:
-    """Copy a depth / mask / segmentation file, resized by the nearest pixel at ``downscale``."""
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    if downscale == 1:
-        shutil.copyfile(src, dst)
-        return
+def _resize_nearest_file(src: Path, downscale: int) -> np.ndarray:
+    """A depth / mask / segmentation file's array (.npy or image), resized by the nearest pixel
+    at ``downscale``."""
     if src.suffix.lower() == ".npy":
         array = np.load(src, allow_pickle=False)
     else:
         array = cv2.imread(str(src), cv2.IMREAD_UNCHANGED)
         if array is None:
             raise DatasetError(f"{src}: cannot read the image")
+    if downscale == 1:
+        return array
     h, w = array.shape[:2]
-    small = _resize_nearest(array, round(w / downscale), round(h / downscale))
+    return _resize_nearest(array, round(w / downscale), round(h / downscale))
+
+
+def _copy_companion(src: Path, dst: Path, downscale: int) -> None:
+    """Copy a depth / mask / segmentation file, resized by the nearest pixel at ``downscale``."""
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    if downscale == 1:
+        shutil.copyfile(src, dst)
+        return
+    small = _resize_nearest_file(src, downscale)
     if src.suffix.lower() == ".npy":
         np.save(dst, small)
     elif not cv2.imwrite(str(dst), small):
@@ -379,6 +388,10 @@ def _pose_and_write(sfm_input: SfmInput, out: Path, options: Optional[SfmOptions
             np.save(out / sparse, keypoints[name])
             entry["sparse_depth_file_path"] = sparse
         for key, value in ((sfm_input.frames or {}).get(name) or {}).items():
+            if key == EXACT_DEPTH_FIELD:  # the exact depth, and nerfstudio's PNG beside it
+                depth = _resize_nearest_file(sfm_input.root / value, downscale)
+                entry.update(write_depth_files(out, str(Path(value).with_suffix("")), depth))
+                continue
             if key.endswith("_path"):
                 _copy_companion(sfm_input.root / value, out / value, downscale)
             entry[key] = value
