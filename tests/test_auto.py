@@ -117,6 +117,10 @@ def test_train_auto_on_a_capture_writes_its_reasons(tiny_capture, tmp_path, caps
     assert any("shiny surfaces cover" in r for r in auto["reasons"])
     cfg = json.loads((run / "config.json").read_text())
     assert cfg["spec"]["method"] == "ngp"
+    again = tmp_path / "again"  # re-created from its config: the same choice and query defaults
+    assert main(["train", "--config", str(run / "config.json"), "--out", str(again),
+                 "--no-progress"]) == 0
+    assert json.loads((again / "auto.json").read_text()) == auto
     capsys.readouterr()
     assert main(["train", "--data", str(tiny_capture[0]), "--target-psnr", "20",
                  "--out", str(tmp_path / "x")]) == 2

@@ -305,6 +305,9 @@ def cmd_train(args) -> int:
                          "(continue the run in --out), not both")
     saved = _saved_run(args)
     args.saved_train = _follow_saved_config(args, *saved) if saved else None
+    # a run that --method auto made keeps its choice (and the query defaults) in auto.json
+    args.saved_auto = saved[0] / "auto.json" if saved and args.config is not None and \
+        (saved[0] / "auto.json").is_file() else None
     if args.data is None:
         raise UsageError("--data DIR is needed (or --config RUN/config.json, or --resume)")
     auto_goal = args.target_psnr is not None or args.time_budget is not None
@@ -366,8 +369,9 @@ def _train_into(args, out: Path, ds, options: dict, background) -> int:
     """The part of ``nerfbot train`` that writes into the run folder ``out``."""
     from nerfbot.eval.evaluation import evaluate
     from nerfbot.models.base import num_params
-    from nerfbot.train.trainer import Trainer
+    from nerfbot.data.spec import read_json
     from nerfbot.data.writers import write_json_atomic
+    from nerfbot.train.trainer import Trainer
 
     method, max_seconds = args.method, args.max_seconds
     if method == "auto":
@@ -401,6 +405,8 @@ def _train_into(args, out: Path, ds, options: dict, background) -> int:
         log.info("resumed %s at step %d (%.1f s trained)", out, trainer.step, trainer.train_seconds)
     if args.method == "auto":  # after a resume was found consistent with the run
         write_json_atomic(out / "auto.json", choice.to_dict())
+    elif getattr(args, "saved_auto", None) is not None:  # --config of a run auto chose
+        write_json_atomic(out / "auto.json", read_json(args.saved_auto))
     summary = trainer.train()
     metrics = evaluate(trainer.model, ds, "test") if scored else {}
     metrics.update(method=method, num_params=num_params(trainer.model), **summary)
