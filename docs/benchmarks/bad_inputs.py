@@ -569,6 +569,30 @@ def _(sb):
     return ["estimate-joints", "run", "--every", "0"]
 
 
+@case("R56", R, "view a folder that is not a run", needs=("data",), mentions=("data",
+                                                                        "checkpoint"))
+def _(sb):
+    return ["view", "data", "--port", "0"]
+
+
+@case("R57", R, "view --camera test:99 (the dataset has 2 test views)", needs=("data", "run"),
+      mentions=("--camera",))
+def _(sb):
+    return ["view", "run", "--port", "0", "--camera", "test:99"]
+
+
+@case("R58", R, "view --port 70000", needs=("data", "run"), mentions=("--port",))
+def _(sb):
+    return ["view", "run", "--port", "70000"]
+
+
+@case("R59", R, "view --geometry of a file that is not a mesh", needs=("data", "run"),
+      mentions=("notes.ply",))
+def _(sb):
+    (sb / "notes.ply").write_text("not a mesh\n")
+    return ["view", "run", "--port", "0", "--geometry", "notes.ply"]
+
+
 # Output folders -------------------------------------------------------------------------------
 O = "output folder"
 CAPTURE = ["capture", "--scene", "tabletop", "--views", "4", "--test-views", "1", "--size", "16",

@@ -1085,10 +1085,8 @@ def _view_start(args, model, ds):
     return StartView.of_camera(c2w, fov, ahead if ahead > 0 else radius), int(ds.sizes[idx][1])
 
 
-def cmd_view(args) -> int:
-    import signal
-    import threading
-
+def make_viewer(args):
+    """The :class:`~nerfbot.app.viewer.Viewer` of ``nerfbot view``'s parsed ``args``, serving."""
     from nerfbot.app.viewer import Settings, Viewer
     from nerfbot.data.conditioning import Conditioning
     from nerfbot.query.density import default_density_threshold
@@ -1112,11 +1110,20 @@ def cmd_view(args) -> int:
         train = ds.cameras(ds.indices("train") if ds.splits.get("train") else list(range(len(ds))))
     settings = Settings(depth_mode=mode, threshold=float(threshold), condition=cond,
                         height=args.resolution or height)
-    path_file = args.path_file or run / "camera_path.json"
-    viewer = Viewer(model, conditioning, train_cameras=train, start=start, settings=settings,
-                    path_file=path_file, geometry=args.geometry or (),
-                    title=f"{run.name}: {info['spec']['method']}, step {info['step']}",
-                    host=args.host, port=args.port)
+    return Viewer(model, conditioning, train_cameras=train, start=start, settings=settings,
+                  path_file=args.path_file or run / "camera_path.json",
+                  geometry=args.geometry or (),
+                  title=f"{run.name}: {info['spec']['method']}, step {info['step']}",
+                  host=args.host, port=args.port)
+
+
+def cmd_view(args) -> int:
+    import signal
+    import threading
+
+    run = Path(args.run)
+    viewer = make_viewer(args)
+    path_file = viewer.path_file.path
     logging.getLogger("websockets").setLevel(logging.WARNING)
     print(f"nerfbot view: {run} at http://{args.host}:{viewer.port} (Ctrl-C to stop); "
           f"saved cameras go to {path_file}", flush=True)
