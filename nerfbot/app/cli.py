@@ -1121,12 +1121,10 @@ def cmd_view(args) -> int:
     import signal
     import threading
 
-    run = Path(args.run)
     viewer = make_viewer(args)
-    path_file = viewer.path_file.path
     logging.getLogger("websockets").setLevel(logging.WARNING)
-    print(f"nerfbot view: {run} at http://{args.host}:{viewer.port} (Ctrl-C to stop); "
-          f"saved cameras go to {path_file}", flush=True)
+    print(f"nerfbot view: {args.run} at http://{args.host}:{viewer.port} (Ctrl-C to stop); "
+          f"saved cameras go to {viewer.path_file.path}", flush=True)
     stopping = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stopping.set())  # stop cleanly when terminated
     try:

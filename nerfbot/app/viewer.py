@@ -268,7 +268,8 @@ class Viewer:
                                           hint="expected, median, or threshold (Dex-NeRF, glass)")
         self.gui_threshold = gui.add_number("threshold (1/m)", float(s.threshold), min=1e-3,
                                             step=1.0, hint="density of threshold depth")
-        self.gui_height = gui.add_slider("resolution (px)", 32, 1024, 16, int(s.height),
+        self.gui_height = gui.add_slider("resolution (px)", 32, max(1024, int(s.height)), 16,
+                                         int(s.height),
                                          hint="height of a still frame, in pixels")
         self.gui_conditions = []
         for name, (lo, hi) in zip(self.conditioning.names, self.conditioning.ranges):
