@@ -143,16 +143,18 @@ def _screenshot(page, name: str) -> np.ndarray:
     return cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB)
 
 
-def test_the_viewer_shows_the_field_in_a_browser_and_follows_its_camera(view_run):
+def test_the_viewer_shows_the_field_in_a_browser_and_follows_its_camera(view_run, tmp_path):
     """``nerfbot view`` in a subprocess, opened by headless Chromium: the first still frame is
     the run's render of the start camera (test view 0) over the open part of the canvas, not a
-    blank canvas; dragging the mouse moves the camera and a new frame shows another view."""
+    blank canvas; "save camera" writes that camera to the path file; dragging the mouse moves
+    the camera and a new frame shows another view."""
     from playwright.sync_api import sync_playwright
 
     run, data = view_run
+    path_file = tmp_path / "path.json"
     proc = subprocess.Popen(
         [sys.executable, "-m", "nerfbot.app.cli", "view", str(run), "--port", "0",
-         "--camera", "test:0", "--resolution", str(RESOLUTION)],
+         "--camera", "test:0", "--resolution", str(RESOLUTION), "--path-file", str(path_file)],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines = []
     try:
@@ -185,6 +187,16 @@ def test_the_viewer_shows_the_field_in_a_browser_and_follows_its_camera(view_run
             match, versus_blank = _psnr(_region(seen), _region(expected)), \
                 _psnr(_region(blank), _region(expected))
             assert match >= 24.0 and match >= versus_blank + 8.0, (match, versus_blank)
+
+            page.get_by_text("save camera", exact=True).click()
+            for _ in range(100):
+                if path_file.exists():
+                    break
+                page.wait_for_timeout(100)
+            ds = load_dataset(data)
+            saved = read_pose_file(path_file)
+            assert len(saved) == 1
+            assert np.abs(saved[0] - ds.c2w[ds.indices("test")[0]]).max() < 1e-3
 
             x0, y0 = int(0.5 * VIEWPORT[0]), int(0.75 * VIEWPORT[1])  # on the canvas
             page.mouse.move(x0, y0)
