@@ -16,9 +16,10 @@ and every moving object of its manifest (``objects``: geoms whose bodies move):
 
 Reports per run and object the median and the largest error over time (cm) of the field's
 estimate against the truth, of the depth-map estimate against the truth, and of the field's
-against the depth-map estimate (the field's own share). Writes ``docs/benchmarks/<NAME>.png``
-(error over time per object; NAME default ``object_centres``), and with ``--json FILE`` every
-step's figures.
+against the depth-map estimate (the field's own share: the estimator's offset removed). Writes
+``docs/benchmarks/<NAME>.png`` (per object over time: the field's share, solid, and the
+field's estimate against the truth, dotted; NAME default ``object_centres``), and with
+``--json FILE`` every step's figures.
 """
 
 from __future__ import annotations
@@ -130,13 +131,14 @@ def plot(results: list, path: Path) -> None:
         for k, r in enumerate(results):
             rows = r["objects"].get(name) or []
             t = [row["time"] for row in rows]
-            ax.plot(t, [row["field_cm"] for row in rows], "o-", color=f"C{k}",
+            ax.plot(t, [row["field_vs_depth_maps_cm"] for row in rows], "o-", color=f"C{k}",
                     label=Path(r["run"]).name)
-            ax.plot(t, [row["depth_maps_cm"] for row in rows], ":", color=f"C{k}")
+            ax.plot(t, [row["field_cm"] for row in rows], ":", color=f"C{k}")
         ax.set_title(name)
         ax.set_xlabel("time")
         ax.set_ylabel("centre error, cm")
-    axes[0].legend(fontsize=7, title="solid: field; dotted: depth maps", title_fontsize=7)
+    axes[0].legend(fontsize=7, title="solid: field vs depth maps; dotted: vs MuJoCo",
+                   title_fontsize=7)
     fig.savefig(path, dpi=110)
 
 
