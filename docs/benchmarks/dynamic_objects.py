@@ -16,6 +16,8 @@ frames:
   ``psnr_non_sky``, as ``nerfbot eval`` reports them;
 - ``psnr_objects_nearest``: the same frames rendered at the nearest training time instead of
   their own (what a model that cannot interpolate in time would show);
+- ``psnr_objects_train``: object PSNR on about 120 training frames (evenly picked), at their
+  own times: how well the field holds the objects where it was trained;
 - ``steps`` and ``render_ms``.
 
 Writes ``BENCH/<NAME>.json`` and ``docs/benchmarks/<NAME>_<capture>.png`` (NAME default
@@ -73,9 +75,16 @@ def score(run: Path, dataset) -> tuple[dict, object]:
         t = np.array([nearest_training_time(dataset, i, train_times)], np.float32)
         rgb = render_image(model, dataset.cameras([i]), 0, cond=t)["rgb"]
         pairs.append((rgb, dataset.image_float(i), object_mask(dataset, i)))
+    train = dataset.indices("train")
+    seen = []
+    for i in train[::max(1, len(train) // 120)]:
+        rgb = render_image(model, dataset.cameras([i]), 0,
+                           cond=np.array([float(dataset.times[i])], np.float32))["rgb"]
+        seen.append((rgb, dataset.image_float(i), object_mask(dataset, i)))
     trained = json.loads((run / "metrics.json").read_text())
     row = {k: result[k] for k in ("psnr", "psnr_objects", "psnr_non_sky")}
-    row.update(psnr_objects_nearest=pooled_psnr(pairs), render_ms=result["render_ms_per_image"],
+    row.update(psnr_objects_nearest=pooled_psnr(pairs), psnr_objects_train=pooled_psnr(seen),
+               render_ms=result["render_ms_per_image"],
                steps=trained["steps"], train_seconds=trained["train_seconds"])
     return row, model
 

@@ -1,7 +1,8 @@
 """Writers of posed-image datasets on disk: nerfstudio ``transforms.json`` and Blender synthetic.
 
 Both writers stream: :meth:`add_frame` writes a frame's image (PNG), z-depth and segmentation
-(int32 ``.npy``, MuJoCo geom ids, -1 = none) at once, and :meth:`finish` writes the JSON file(s) atomically (temporary file + ``os.replace``).
+(int32 ``.npy``, MuJoCo geom ids, -1 = none) at once, and :meth:`finish` writes the JSON
+file(s) atomically (temporary file + ``os.replace``).
 Poses are c2w 4x4 in the OpenGL convention; they are written with full float precision
 (``repr`` of float64), so reading them back gives the same numbers.
 
