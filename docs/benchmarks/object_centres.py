@@ -14,6 +14,10 @@ and every moving object of its manifest (``objects``: geoms whose bodies move):
 - the truth: the geom's centre from the body pose MuJoCo recorded (``states.npz``) and the
   geom's offset in its body.
 
+For runs whose field is a deformation (``dnerf``), the field's points of each object are also
+moved to the next captured step by the field's scene flow (:func:`nerfbot.query.motion.
+point_motion`), and their mean displacement is compared with the geom centre's in MuJoCo.
+
 Reports per run and object the median and the largest error over time (cm) of the field's
 estimate against the truth, of the depth-map estimate against the truth, and of the field's
 against the depth-map estimate (the field's own share: the estimator's offset removed). Writes
@@ -32,11 +36,13 @@ import cv2
 import matplotlib
 import mujoco
 import numpy as np
+import torch
 from matplotlib.figure import Figure
 
 import sims  # noqa: F401  (MUJOCO_GL before mujoco)
 from nerfbot.data.run_dataset import resolve_run_dataset
 from nerfbot.ops.pointcloud import depth_to_cloud
+from nerfbot.query.motion import point_motion
 from nerfbot.query.render import render_image
 from nerfbot.train.runs import load_model
 from sims.scene import load_capture_model
@@ -75,6 +81,8 @@ def measure(run: Path) -> dict:
     model, info = load_model(run)
     _, ds = resolve_run_dataset(run, info["spec"].get("dataset"))
     centres, state_of = geom_centres(ds)
+    step_times = np.load(ds.root / ds.manifest["capture"]["state_file"])["time"]
+    flows = hasattr(model.field, "deformation")
     ids = {name: int(k) for k, name in ds.manifest["geoms"].items()
            if name in ds.manifest["objects"]}
     steps: dict[int, list[int]] = {}
@@ -103,11 +111,19 @@ def measure(run: Path) -> dict:
                 continue
             truth = centres[name][s]
             f_c, t_c = f.mean(0), t.mean(0)
-            rows[name].append({"state": s, "time": float(ds.times[frames[0]]),
-                               "views": len(field_pts[name]),
-                               "field_cm": 100 * float(np.linalg.norm(f_c - truth)),
-                               "depth_maps_cm": 100 * float(np.linalg.norm(t_c - truth)),
-                               "field_vs_depth_maps_cm": 100 * float(np.linalg.norm(f_c - t_c))})
+            row = {"state": s, "time": float(ds.times[frames[0]]),
+                   "views": len(field_pts[name]),
+                   "field_cm": 100 * float(np.linalg.norm(f_c - truth)),
+                   "depth_maps_cm": 100 * float(np.linalg.norm(t_c - truth)),
+                   "field_vs_depth_maps_cm": 100 * float(np.linalg.norm(f_c - t_c))}
+            if flows and s + 1 < len(step_times):
+                moved = point_motion(model, torch.as_tensor(f, dtype=torch.float32),
+                                     float(ds.times[frames[0]]), float(step_times[s + 1]))
+                flow = (moved.points.numpy() - f).mean(0)
+                true_motion = centres[name][s + 1] - truth
+                row.update(flow_error_cm=100 * float(np.linalg.norm(flow - true_motion)),
+                           true_motion_cm=100 * float(np.linalg.norm(true_motion)))
+            rows[name].append(row)
     return {"run": str(run), "method": info["spec"]["method"], "objects": rows}
 
 
@@ -118,8 +134,12 @@ def summary(result: dict) -> list[str]:
             continue
         cols = [np.array([r[k] for r in rows]) for k in
                 ("field_cm", "depth_maps_cm", "field_vs_depth_maps_cm")]
+        flow = [(r["flow_error_cm"], r["true_motion_cm"]) for r in rows if "flow_error_cm" in r]
+        flow_text = (f"{np.median([a for a, _ in flow]):.2f} / {np.max([a for a, _ in flow]):.2f}"
+                     f" (moved {np.median([b for _, b in flow]):.2f})") if flow else "–"
         lines.append(f"| {Path(result['run']).name} | {name} | {len(rows)} | "
-                     + " | ".join(f"{np.median(c):.2f} / {c.max():.2f}" for c in cols) + " |")
+                     + " | ".join(f"{np.median(c):.2f} / {c.max():.2f}" for c in cols)
+                     + f" | {flow_text} |")
     return lines
 
 
@@ -150,8 +170,8 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     results = [measure(run) for run in args.runs]
     print("| run | object | steps | field vs MuJoCo, cm (median / max) | depth maps vs MuJoCo "
-          "| field vs depth maps |")
-    print("|---|---|---|---|---|---|")
+          "| field vs depth maps | scene flow to the next step vs MuJoCo |")
+    print("|---|---|---|---|---|---|---|")
     for r in results:
         print("\n".join(summary(r)))
     plot(results, HERE / f"{args.out}.png")
