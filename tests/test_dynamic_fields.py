@@ -212,6 +212,23 @@ TOY_ROLLOUT = dict(
     extra='<keyframe><key name="init" qpos="0 0" qvel="0.6 0.6"/></keyframe>')
 
 
+def test_kplanes_static_warmup_turns_the_moving_part_on_and_then_lets_the_grid_prune():
+    from nerfbot.fields.kplanes import KPlanesField, KPlanesFieldConfig
+
+    field = KPlanesField(AABB, TIME, kconfig=KPlanesFieldConfig(dynamic_warmup=0.2))
+    x, t = torch.rand(100, 3), torch.rand(100, 1)
+    for progress, on, prunable in ((0.0, False, False), (0.19, False, False),
+                                   (0.2, True, False), (0.29, True, False), (0.31, True, True)):
+        field.before_step(0, progress)
+        sigma_d, geo_d = field.dynamic_density(x, t)
+        assert bool(sigma_d.abs().sum() > 0) == on and field.prunable() == prunable
+        if not on:
+            torch.testing.assert_close(field.density(x, t)[0], field.static.density(x)[0])
+    assert KPlanesField(AABB, TIME).prunable()  # without a warm-up the grid prunes as always
+    with pytest.raises(ValueError, match="dynamic_warmup"):
+        KPlanesFieldConfig(dynamic_warmup=1.0)
+
+
 def test_kplanes_shows_the_moving_objects_of_a_toy_rollout(tmp_path, toy_mjcf):
     """A cube and a ball slide across a floor (0.6 m/s, 8 fixed cameras, 12 time steps, every
     4th held out): kplanes renders them where they are in the training frames, and at the

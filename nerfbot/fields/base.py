@@ -80,6 +80,12 @@ class Field(nn.Module, metaclass=abc.ABCMeta):
         """A scalar added to the training loss (e.g. smoothness of a space-time grid), or None."""
         return None
 
+    def prunable(self) -> bool:
+        """Whether an occupancy grid may prune empty cells now (the field's last
+        :meth:`before_step` decides); False while part of the field has yet to grow where it
+        will live. Default: always."""
+        return True
+
     def init_mean_color(self, rgb: torch.Tensor) -> None:
         """Start predicting the colour ``rgb`` (3,) in (0, 1) everywhere (before training).
 

@@ -11,8 +11,11 @@ features, which share the static colour MLP. A small object at (x(t), y(t), z(t)
 of three time planes each peaked at one coordinate, so the planes hold fast motion at frame
 resolution, where a deformation of a canonical scene (``dnerf``) has to carry each object
 across the scene and a time input (``tnerf``) has to be decoded by an MLP. The moving part
-starts transparent and its time planes at 1 (the K-Planes initialisation), so training starts
-from a static scene; the static part takes what never changes because it learns faster.
+starts transparent and its time planes at 1 (the K-Planes initialisation), and it is off for
+the first ``dynamic_warmup`` of the budget: the static part takes what never changes first.
+Without the warm-up the moving part, as able as the static part to hold a time-constant
+surface, takes much of the table while the static part keeps time-averaged smears of the moving
+objects (``docs/benchmarks/kplanes_parts.py`` shows both parts).
 
 Densities add (as in D^2-NeRF's static / dynamic decomposition), so one march over one
 occupancy grid renders both; the grid counts a cell occupied when the static part or the moving
@@ -62,6 +65,11 @@ class KPlanesFieldConfig:
     occupancy_times: int = 4
     """Random times per point at which the moving part is evaluated for an occupancy update
     (the maximum counts)."""
+    dynamic_warmup: float = 0.2
+    """Fraction of the training budget during which only the static part trains (the moving
+    part is off), so that what never changes is the static part's before the moving part can
+    take it. The occupancy grid prunes nothing until half as long again after it, while the
+    moving part grows where the static part left space empty."""
 
     def __post_init__(self):
         for name in ("planes_levels", "planes_features", "planes_spatial_res", "planes_time_res",
@@ -72,6 +80,8 @@ class KPlanesFieldConfig:
         if not 0.0 < self.dynamic_initial_transmittance < 1.0:
             raise ValueError(f"dynamic_initial_transmittance must be in (0, 1), got "
                              f"{self.dynamic_initial_transmittance}")
+        if not 0.0 <= self.dynamic_warmup < 1.0:
+            raise ValueError(f"dynamic_warmup must be in [0, 1), got {self.dynamic_warmup}")
         for name in ("planes_tv_weight", "planes_time_smoothness_weight",
                      "dynamic_sparsity_weight"):
             if not 0.0 <= getattr(self, name) < math.inf:
@@ -102,6 +112,9 @@ class KPlanesField(Field):
         #: edge of a finest plane cell, metres (the length of the sparsity term's opacity)
         self.cell = self.static.normalize.extent / kc.planes_spatial_res
         self._opacity: Optional[torch.Tensor] = None
+        #: False during the static warm-up (:attr:`KPlanesFieldConfig.dynamic_warmup`)
+        self._dynamic_on = True
+        self._prunable = True
 
     def _time(self, cond: Optional[torch.Tensor], n: int, like: torch.Tensor) -> torch.Tensor:
         return like.new_zeros(n, 1) if cond is None else cond[:, :1].to(like.dtype)
@@ -110,6 +123,8 @@ class KPlanesField(Field):
                         ) -> tuple[torch.Tensor, torch.Tensor]:
         """The moving part alone: x (N, 3) metres, ``cond`` (N, 1) times -> sigma_d (N,) in
         1/m, geometry features (N, geo_feat_dim)."""
+        if not self._dynamic_on:
+            return x.new_zeros(x.shape[0]), x.new_zeros(x.shape[0], self.geo_feat_dim)
         t = self._time(cond, x.shape[0], x)
         xn = self.static.normalize(x)
         h = self.dynamic_mlp(self.planes(torch.cat([xn, t], -1)))
@@ -138,7 +153,13 @@ class KPlanesField(Field):
         return self.static.density(x)[0] + moving
 
     def before_step(self, step: int, progress: float) -> dict:
+        warmup = self.kconfig.dynamic_warmup
+        self._dynamic_on = progress >= warmup
+        self._prunable = warmup == 0.0 or progress >= 1.5 * warmup
         return self.static.before_step(step, progress)
+
+    def prunable(self) -> bool:
+        return self._prunable
 
     def regularizer(self) -> Optional[torch.Tensor]:
         kc = self.kconfig

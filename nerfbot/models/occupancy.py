@@ -361,7 +361,8 @@ class OccupancyModel(Model):
             return out
         frac = self.grid.update(lambda x: self.field.occupancy_density(x, generator), self.dt_min,
                                 generator,
-                                prune=step >= self.config.grid_warmup_steps)
+                                prune=step >= self.config.grid_warmup_steps
+                                and self.field.prunable())
         return {**out, "occupied": frac}
 
     def rays_for_next_batch(self, last_samples: Optional[int], n_rays: int) -> int:
