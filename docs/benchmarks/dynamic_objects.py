@@ -4,8 +4,9 @@ dynamic capture, then scored where things move.
     python docs/benchmarks/dynamic_objects.py BENCH [--seconds 300] [--methods kplanes,dnerf]
         [--captures multi12,mono] [--out NAME]
 
-A method written ``NAME/uniform`` is trained with uniform rays (``--dynamic-rays 0``) into
-``run_<capture>_NAME_uniform``.
+A method written ``NAME/VARIANT`` is trained into ``run_<capture>_NAME_VARIANT`` with the
+variant's flags (:data:`VARIANTS`): ``uniform`` rays (``--dynamic-rays 0``), or ``warmup``
+(``--option dynamic_warmup=0.2``, kplanes' static part alone first).
 
 ``BENCH/<capture>`` holds the captures made by the commands in BENCHMARKS.md. Each method is
 trained alone (``nerfbot train --max-seconds S``) into ``BENCH/run_<capture>_<method>`` (kept
@@ -46,6 +47,9 @@ from nerfbot.query.render import render_image
 from nerfbot.train.runs import load_model
 
 HERE = Path(__file__).resolve().parent
+#: The training flags of a method written NAME/VARIANT.
+VARIANTS = {"": [], "uniform": ["--dynamic-rays", "0"],
+            "warmup": ["--option", "dynamic_warmup=0.2"]}
 
 
 def object_mask(dataset, i: int) -> np.ndarray:
@@ -133,13 +137,13 @@ def main() -> None:
         dataset = load_dataset(data)
         models, results[capture] = {}, {}
         for method in args.methods.split(","):
-            name, _, rays = method.partition("/")
+            name, _, variant = method.partition("/")
             run = args.bench / f"run_{capture}_{method.replace('/', '_')}"
             if not (run / "checkpoint.pt").is_file():
                 subprocess.run(["nerfbot", "train", "--data", str(data), "--method", name,
                                 "--max-seconds", str(args.seconds), "--out", str(run),
                                 "--no-progress"]
-                               + (["--dynamic-rays", "0"] if rays == "uniform" else []),
+                               + VARIANTS[variant],
                                check=True)
             results[capture][method], models[method] = score(run, dataset)
             print(capture, method, results[capture][method], flush=True)
