@@ -70,7 +70,7 @@ def geom_centres(dataset) -> tuple[dict, np.ndarray]:
     return centres, states["state_of_frame"]
 
 
-def surface_mean(depth: np.ndarray, mask: np.ndarray, intrinsics, c2w) -> np.ndarray:
+def surface_points(depth: np.ndarray, mask: np.ndarray, intrinsics, c2w) -> np.ndarray:
     """(N, 3) world points of ``depth`` (H, W z-depth, metres) at ``mask`` pixels."""
     z = np.where(mask, depth, np.nan).astype(np.float32)
     cloud = depth_to_cloud(z, *intrinsics, c2w, normals=False, max_depth=1e4)
@@ -100,9 +100,9 @@ def measure(run: Path) -> dict:
                 mask = cv2.erode((ds.segmentations[i] == g).astype(np.uint8), kernel) > 0
                 if not mask.any():
                     continue
-                field_pts[name].append(surface_mean(img["median_z_depth"], mask,
+                field_pts[name].append(surface_points(img["median_z_depth"], mask,
                                                     ds.intrinsics[i], ds.c2w[i]))
-                true_pts[name].append(surface_mean(ds.depths[i], mask, ds.intrinsics[i],
+                true_pts[name].append(surface_points(ds.depths[i], mask, ds.intrinsics[i],
                                                    ds.c2w[i]))
         for name in ids:
             f = np.concatenate(field_pts[name]) if field_pts[name] else np.zeros((0, 3))

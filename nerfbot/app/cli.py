@@ -741,24 +741,13 @@ def _render_depth_query(args, run: Path) -> tuple[str, float | None, str]:
     return mode, as_thresholds(threshold)[0], source
 
 
-def _depth_of(img: dict, mode: str):
-    """((H, W) z-depth in metres, (H, W) bool valid) of a :func:`render_image` result."""
-    import numpy as np
-
-    if mode == "threshold":
-        z = img["threshold_z_depth"][0]
-        return z, np.isfinite(z)
-    z = img["median_z_depth"] if mode == "median" else img["z_depth"]
-    return z, img["opacity"] > 0.5
-
-
 #: The video files ``nerfbot render --out`` writes; any other --out is a folder of images.
 def cmd_render(args) -> int:
     import numpy as np
 
     from nerfbot.data.outputs import check_output_file, check_output_folder
     from nerfbot.query.export import colorize_depth, colorize_labels, save_image, to_uint8
-    from nerfbot.query.render import render_image
+    from nerfbot.query.render import depth_of, render_image
     from nerfbot.query.video import VIDEO_SUFFIXES, write_video
     from nerfbot.train.runs import load_model
     from tqdm.auto import tqdm
@@ -795,7 +784,7 @@ def cmd_render(args) -> int:
                 if args.what == "rgb":
                     yield to_uint8(img["rgb"])
                 elif args.what == "depth":
-                    yield colorize_depth(*_depth_of(img, mode))
+                    yield colorize_depth(*depth_of(img, mode))
                 elif args.what == "labels":
                     yield colorize_labels(img["labels"].argmax(-1), n_classes)
                 else:
@@ -804,7 +793,7 @@ def cmd_render(args) -> int:
     else:
         with folder.writing():
             for i, img in enumerate(images):
-                z, valid = _depth_of(img, mode)
+                z, valid = depth_of(img, mode)
                 save_image(out / f"rgb_{i:04d}.png", img["rgb"])
                 save_image(out / f"depth_{i:04d}.png", colorize_depth(z, valid))
                 save_image(out / f"opacity_{i:04d}.png",

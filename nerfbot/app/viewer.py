@@ -13,9 +13,7 @@ The scene's up direction is +z (MuJoCo's).
 
 from __future__ import annotations
 
-import json
 import logging
-import os
 import threading
 import time
 from dataclasses import dataclass, field
@@ -28,10 +26,11 @@ import viser
 from scipy.spatial.transform import Rotation
 
 from nerfbot.data.conditioning import Conditioning
+from nerfbot.data.writers import write_json_atomic
 from nerfbot.models.base import Model
 from nerfbot.ops.cameras import Cameras
 from nerfbot.query.export import colorize_depth, colorize_labels, to_uint8
-from nerfbot.query.render import DEPTH_MODES, render_image
+from nerfbot.query.render import DEPTH_MODES, depth_of, render_image
 from sims.rigs import read_pose_file
 
 log = logging.getLogger(__name__)
@@ -155,10 +154,8 @@ class CameraPathFile:
     def append(self, c2w: np.ndarray) -> int:
         """Add a keyframe (OpenGL c2w (4, 4)); returns the number of keyframes."""
         self.poses.append(np.asarray(c2w, dtype=np.float64))
-        doc = {"poses": [{"transform_matrix": p.tolist()} for p in self.poses]}
-        tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
-        tmp.write_text(json.dumps(doc, indent=1))
-        os.replace(tmp, self.path)
+        write_json_atomic(self.path, {"poses": [{"transform_matrix": p.tolist()}
+                                                for p in self.poses]})
         return len(self.poses)
 
 
@@ -364,12 +361,7 @@ class Viewer:
                            supersample=None if full else 1,
                            thresholds=[settings.threshold] if threshold else [],
                            labels=settings.show == "labels")
-        if threshold:
-            z = img["threshold_z_depth"][0]
-            valid = np.isfinite(z)
-        else:
-            z = img["median_z_depth"] if settings.depth_mode == "median" else img["z_depth"]
-            valid = img["opacity"] > 0.5
+        z, valid = depth_of(img, settings.depth_mode)
         if settings.show == "depth":
             out = colorize_depth(z, valid)
         elif settings.show == "opacity":

@@ -145,6 +145,17 @@ def render_image(model: Model, cameras: Cameras, index: int, downscale: int = 1,
     return result
 
 
+def depth_of(img: dict, mode: str) -> tuple[np.ndarray, np.ndarray]:
+    """((H, W) z-depth in metres, (H, W) bool valid) of a :func:`render_image` result for depth
+    ``mode``: threshold depth (its first threshold) where it is reached, else the expected or
+    median z-depth where the opacity exceeds one half."""
+    if mode == "threshold":
+        z = img["threshold_z_depth"][0]
+        return z, np.isfinite(z)
+    z = img["median_z_depth"] if mode == "median" else img["z_depth"]
+    return z, img["opacity"] > 0.5
+
+
 def edge_pixels(rgb: np.ndarray, tolerance: float) -> np.ndarray:
     """(P,) row-major indices of the pixels of ``rgb`` (H, W, 3) whose 3 x 3 neighbourhood
     spans more than ``tolerance`` (max - min) in some channel: where one ray per pixel may not
