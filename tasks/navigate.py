@@ -19,8 +19,9 @@ For each of ``--scenes`` room seeds (``--seed`` on):
    map, trajectory optimisation through the field's density (NeRF-Nav's collision cost)
    refines it;
 4. the base drives the path in physics, steering by its true pose (``--pose gt``) or by poses
-   estimated from its own camera every few control steps (``--pose inerf`` or ``multistart``,
-   :mod:`nerfbot.query.localise`). Success: within 10 cm of the goal without any contact.
+   estimated from its own camera every few control steps (``--pose inerf`` or ``wide``,
+   :mod:`nerfbot.query.localise`, with the ground robot's planar pose model). Success:
+   within 10 cm of the goal without any contact.
 
 Outputs in ``--out``: ``log.json`` (every trial), ``summary.json`` and one top-down PNG per
 trial in ``trials/`` (map, planned and driven paths, contacts).
@@ -47,7 +48,7 @@ from nerfbot.app.cli import parse_option
 from nerfbot.data import load_dataset
 from nerfbot.data.writers import write_json_atomic
 from nerfbot.query.density import OccupancyVolume, grid_points, occupancy_volume
-from nerfbot.query.localise import InerfConfig, MultiStartConfig, inerf, localise_multistart
+from nerfbot.query.localise import InerfConfig, WideConfig, inerf, localise_wide
 from nerfbot.train.checkpoints import CHECKPOINT
 from nerfbot.train.runs import load_model
 from nerfbot.train.trainer import TrainConfig, Trainer
@@ -66,7 +67,7 @@ from tasks.nav_planner import (PlanningError, TrajectoryConfig, optimise_traject
 log = logging.getLogger(__name__)
 
 MAPS = ("nerf", "sensor", "gt")
-POSES = ("gt", "inerf", "multistart")
+POSES = ("gt", "inerf", "wide")
 #: A trial succeeds when the base ends within this distance (metres) of the goal, untouched.
 GOAL_DISTANCE = 0.10
 
@@ -312,13 +313,27 @@ def _pose_source(model, world: World, cfg: NavTaskConfig, seconds: list):
         image = world.observe()
         guess = world.camera_pose(predicted)
         if cfg.pose == "inerf":
-            est = inerf(model, image, world.intrinsics, guess, InerfConfig())
+            est = inerf(model, image, world.intrinsics, guess, InerfConfig(planar=True))
         else:
-            est = localise_multistart(model, image, world.intrinsics, guess, MultiStartConfig())
+            est = localise_wide(model, image, world.intrinsics, guess, WideConfig(planar=True))
         seconds.append(est.seconds)
         return base_pose_from_camera(est.c2w)
 
     return estimate
+
+
+def _estimate_errors(drive_log: DriveLog, cfg: NavTaskConfig) -> dict:
+    """Median and largest position error (metres) and median yaw error (degrees) of the pose
+    estimates a drive steered by, at the control updates where they were made."""
+    if cfg.pose == "gt" or not len(drive_log.poses):
+        return {}
+    at = slice(0, None, cfg.drive.localise_every)
+    est, true = drive_log.estimates[at], drive_log.poses[at]
+    dxy = np.linalg.norm(est[:, :2] - true[:, :2], axis=1)
+    dyaw = np.degrees(np.abs((est[:, 2] - true[:, 2] + np.pi) % (2 * np.pi) - np.pi))
+    return {"estimate_error_m_median": float(np.median(dxy)),
+            "estimate_error_m_max": float(dxy.max()),
+            "estimate_error_deg_median": float(np.median(dyaw))}
 
 
 def trial_sheet(fmap: FloorMap, gt_map: FloorMap, planned: Optional[np.ndarray],
@@ -420,6 +435,7 @@ def run_experiment(cfg: NavTaskConfig) -> dict:
                         trial_seconds=time.perf_counter() - t0, sim_seconds=drive_log.seconds,
                         contacts=drive_log.contacts, goal_error=error,
                         localise_seconds=float(np.median(loc_seconds)) if loc_seconds else None,
+                        **_estimate_errors(drive_log, cfg),
                         success=bool(error <= GOAL_DISTANCE and not drive_log.contacts),
                         reason="" if error <= GOAL_DISTANCE and not drive_log.contacts else
                         ("contact with " + ", ".join(sorted(set(drive_log.contacts)))
@@ -455,7 +471,11 @@ def summarize(records: list[dict]) -> dict:
             "trial_seconds_median": med([r["trial_seconds"] for r in records
                                          if "trial_seconds" in r]),
             "localise_seconds_median": med([r["localise_seconds"] for r in records
-                                            if r.get("localise_seconds") is not None])}
+                                            if r.get("localise_seconds") is not None]),
+            "estimate_error_m_median": med([r["estimate_error_m_median"] for r in records
+                                            if "estimate_error_m_median" in r]),
+            "estimate_error_m_max": max((r["estimate_error_m_max"] for r in records
+                                         if "estimate_error_m_max" in r), default=None)}
 
 
 def _config_dict(cfg: NavTaskConfig) -> dict:
@@ -484,7 +504,10 @@ def format_summary(summary: dict) -> str:
              f"{fmt(summary['planning_seconds_median'], '.2f')}, "
              f"{fmt(summary['planning_seconds_max'], '.2f')}"),
             ("localisation s per estimate (median)",
-             fmt(summary["localise_seconds_median"], ".2f"))]
+             fmt(summary["localise_seconds_median"], ".2f")),
+            ("estimate position error m (median, max)",
+             f"{fmt(summary.get('estimate_error_m_median'), '.3f')}, "
+             f"{fmt(summary.get('estimate_error_m_max'), '.3f')}")]
     return "\n".join(lines + [""] + [f"{k:<48} {v}" for k, v in rows])
 
 

@@ -34,12 +34,13 @@ def test_robot_views_stand_on_free_floor():
 def test_summary_rates_and_plot(tmp_path):
     levels = [(0.02, 1.0), (0.3, 20.0)]
     records = [{"estimator": "inerf", "translation": t, "rotation": r, "error_m": e,
-                "error_deg": 0.5, "seconds": 1.0, "success": e < 0.02}
+                "error_deg": 0.5, "seconds": 1.0, "success": e < 0.02, "loose": e < 0.05}
                for (t, r), errors in zip(levels, ([0.01, 0.01, 0.05], [0.5, 0.5, 0.01]))
                for e in errors]
     summary = summarize(records, levels, ["inerf"])
     rates = [row["success_rate"] for row in summary["rows"]]
     assert rates == pytest.approx([2 / 3, 1 / 3])
+    assert [row["loose_rate"] for row in summary["rows"]] == pytest.approx([2 / 3, 1 / 3])
     plot_basin(summary, tmp_path / "basin.png")
     assert (tmp_path / "basin.png").stat().st_size > 1000
 

@@ -29,6 +29,7 @@ QUICKSTART = NOTEBOOKS / "01_quickstart.ipynb"
 GLASS = NOTEBOOKS / "02_glass_grasping.ipynb"
 ARTICULATED = NOTEBOOKS / "03_articulated.ipynb"
 VARIANTS = NOTEBOOKS / "04_variants.ipynb"
+NAVIGATION = NOTEBOOKS / "05_navigation.ipynb"
 POSES = NOTEBOOKS / "06_poses_and_few_views.ipynb"
 EXPORTS = NOTEBOOKS / "07_exports_and_labels.ipynb"
 
@@ -127,6 +128,14 @@ def poses(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
+def navigation(tmp_path_factory):
+    """The navigation tutorial at a small budget: a room needs more views than a tabletop
+    (300 at 64 px) and more steps (1000) before its field maps the obstacles and localises."""
+    return _execute(NAVIGATION, tmp_path_factory.mktemp("nb_navigation"), NERFBOT_NB_SIZE="64",
+                    NERFBOT_NB_VIEWS="300", NERFBOT_NB_STEPS="1000")
+
+
+@pytest.fixture(scope="module")
 def exports(tmp_path_factory):
     """The exports-and-labels tutorial at a small budget: objects of a few pixels at 32 px
     get no label in 60 steps, so 48 px, 16 views and 200 steps."""
@@ -134,7 +143,8 @@ def exports(tmp_path_factory):
                     NERFBOT_NB_VIEWS="16", NERFBOT_NB_STEPS="200")
 
 
-@pytest.mark.parametrize("path", [QUICKSTART, GLASS, ARTICULATED, VARIANTS, POSES, EXPORTS],
+@pytest.mark.parametrize("path", [QUICKSTART, GLASS, ARTICULATED, VARIANTS, NAVIGATION, POSES,
+                                  EXPORTS],
                          ids=lambda p: p.stem)
 def test_stored_without_outputs(path):
     nb = nbformat.read(path, as_version=4)
@@ -297,3 +307,29 @@ def test_exports_tutorial_labels_exports_and_locates(exports):
     for name, f in r["fscore"].items():
         assert 0.0 < f <= 1.0, name
     assert r["located_points"] > 0 and r["located_error_m"] < EXPORTS_MAX_LOCATED_ERROR_M
+
+
+# The navigation tutorial at its small budget (64 px, 300 views, 1000 steps): observed test
+# PSNR 29.2 dB, map IoU 0.60 with the true floor map, a path 0.99x the true map's; from 10 cm
+# and 8 degrees off, the wide estimator reached 6.2, 4.7 and 2.2 cm and at most 0.82 degrees on
+# the three views (iNeRF 7.1, 4.0 and 10.5 cm, up to 3.3 degrees); the drive,
+# steering by the wide estimator every 0.5 s, kept its estimates within 2.2 cm (median) of
+# the true pose and ended 5.8 cm from the goal. It touched a low table's top that the field's
+# map misses at this budget (BENCHMARKS.md, section 9), so contacts are reported, not asserted.
+NAV_MIN_PSNR_DB = 22.0
+NAV_MIN_MAP_IOU = 0.4
+NAV_MAX_ESTIMATE_ERROR_M = 0.06
+
+
+def test_navigation_tutorial_maps_plans_localises_and_drives(navigation):
+    nb, r = navigation
+    assert len(_figures(nb)) >= 4   # views, maps, localisation renders, the trial sheet
+    assert r["psnr"] >= NAV_MIN_PSNR_DB
+    assert r["map"]["iou"] >= NAV_MIN_MAP_IOU
+    assert r["reference_length"] > 1.0
+    assert 0.8 * r["reference_length"] <= r["path_length"] <= 1.3 * r["reference_length"]
+    wide = r["localise"]["wide"]["error_m"]
+    assert len(wide) == 3 and max(wide) < 0.09 and float(np.median(wide)) < 0.06
+    assert max(r["localise"]["wide"]["error_deg"]) < 2.0
+    assert r["estimates"] >= 5 and r["estimate_error_m_median"] < NAV_MAX_ESTIMATE_ERROR_M
+    assert r["goal_error_m"] < 0.10

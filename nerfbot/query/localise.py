@@ -1,17 +1,26 @@
 """Where is the camera? Pose estimation from one observed image through a frozen field.
 
 - :func:`inerf` (iNeRF, Yen-Chen et al. 2021): gradient descent on the photometric error of a
-  batch of pixels, over a pose update in se(3) applied in the camera frame through the
-  exponential map, ``c2w = c2w_0 @ exp(xi)``. Pixels are drawn from an interest region
-  (opencv keypoints, dilated), where the image gradient tells the pose apart. Its basin is
-  narrow (the iNeRF paper's finding).
-- :func:`localise_multistart`: meant to widen the basin. Many perturbed starts descend
-  together (one batched render per iteration) for a short coarse phase; the start with the
-  lowest error on a fixed pixel set is refined by :func:`inerf`. Its cost is ``starts`` times a
-  coarse iteration plus one iNeRF run. Not yet validated: on a tiny test capture it drifted
-  along the view axis (BENCHMARKS.md, open points).
+  batch of pixels, over a pose update applied through the exponential map,
+  ``c2w = c2w_0 @ exp(xi)``. Pixels are drawn from an interest region (opencv keypoints,
+  dilated), where the image gradient tells the pose apart. Its basin is narrow: a pixel's
+  colour says nothing about a pose that moves it by more than a few pixels.
+- :func:`localise_wide`: widens the basin by comparing whole images at low resolution, blurred
+  (a Lucas-Kanade pyramid through the field): a grid of hypotheses around the guess is scored
+  by 16 x 16 renders without gradients; the guess and the best few descend together at
+  16 x 16, the best two of them at 32 x 32; these two and the guess itself are polished by
+  iNeRF together, and the one whose colours fit best at full resolution wins. Its cost is
+  about one 16 x 16 render per hypothesis, the descents, and a short iNeRF run for three
+  starts.
 
-Both need a model that renders with gradients w.r.t. its rays
+The pose update is one of two models (``planar`` in the configs):
+
+- ``planar=False``: a twist in se(3) in the camera frame, all six degrees of freedom;
+- ``planar=True``: (dx, dy, dyaw) in the world, the camera turning about the vertical through
+  its centre, as a ground robot's camera moves: its height, roll and pitch are known from its
+  body, and a 6-DoF search would spend its pixels on them.
+
+All need a model that renders with gradients w.r.t. its rays
 (:meth:`~nerfbot.models.base.Model.render_rays_differentiable`).
 """
 
@@ -19,11 +28,12 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from nerfbot.ops.alignment import rotation_angle_deg
 from nerfbot.ops.cameras import pixel_rays
@@ -66,6 +76,7 @@ class InerfConfig:
         interest_fraction: share of the pixels drawn from the interest region (the rest
             uniformly, so flat regions still anchor the pose).
         dilate: interest-region growth around each keypoint, pixels.
+        planar: update (dx, dy, dyaw) in the world instead of a 6-DoF twist (module docstring).
     """
 
     iterations: int = 80
@@ -74,6 +85,7 @@ class InerfConfig:
     interest: bool = True
     interest_fraction: float = 0.75
     dilate: int = 3
+    planar: bool = False
 
 
 @dataclass
@@ -133,24 +145,91 @@ def _photometric(model, obs: _Observation, c2w: torch.Tensor, px, py) -> torch.T
     return ((rgb - obs.target(px, py).repeat(k, 1)) ** 2).mean(-1).reshape(k, n).mean(-1)
 
 
-def _descend(model, obs: _Observation, c2w0: torch.Tensor, iterations: int, rays: int,
-             lr: float) -> tuple[torch.Tensor, list[float]]:
-    """Adam on one twist per start: c2w0 (K, 4, 4) -> refined (K, 4, 4), mean losses per
-    iteration."""
-    xi = torch.zeros(c2w0.shape[0], 6, device=c2w0.device, requires_grad=True)
+def planar_update(c2w: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+    """(K, 4, 4) poses ``c2w`` (K, 4, 4) turned by q[:, 2] radians about the world's vertical
+    through each camera centre, then moved by (q[:, 0], q[:, 1], 0) metres; differentiable."""
+    c, s = torch.cos(q[:, 2]), torch.sin(q[:, 2])
+    zero, one = torch.zeros_like(c), torch.ones_like(c)
+    rz = torch.stack([torch.stack([c, -s, zero], -1), torch.stack([s, c, zero], -1),
+                      torch.stack([zero, zero, one], -1)], -2)
+    centre = c2w[:, :3, 3] + torch.stack([q[:, 0], q[:, 1], zero], -1)
+    bottom = c2w[:, 3:, :].expand(len(q), 1, 4)
+    return torch.cat([torch.cat([rz @ c2w[:, :3, :3], centre[..., None]], -1), bottom], 1)
+
+
+def _update(c2w0: torch.Tensor, xi: torch.Tensor, planar: bool) -> torch.Tensor:
+    return planar_update(c2w0, xi) if planar else c2w0 @ se3_exp(xi)
+
+
+def _adam(c2w0: torch.Tensor, planar: bool, iterations: int, lr: float, loss_of
+          ) -> tuple[torch.Tensor, torch.Tensor, list[float]]:
+    """Adam on one pose update per start, the rate decayed to a tenth: c2w0 (K, 4, 4) ->
+    (refined (K, 4, 4), last losses (K,), mean loss per iteration). ``loss_of(poses, it)``
+    gives the (K,) losses of poses (K, 4, 4) at iteration ``it``."""
+    xi = torch.zeros(c2w0.shape[0], 3 if planar else 6, device=c2w0.device, requires_grad=True)
     opt = torch.optim.Adam([xi], lr=lr)
-    losses = []
+    losses, loss = [], torch.zeros(c2w0.shape[0])
     for it in range(iterations):
         for group in opt.param_groups:
             group["lr"] = lr * 0.1 ** (it / max(iterations - 1, 1))
-        px, py = obs.draw(rays)
-        loss = _photometric(model, obs, c2w0 @ se3_exp(xi), px, py)
+        loss = loss_of(_update(c2w0, xi, planar), it)
         opt.zero_grad()
         loss.sum().backward()
         opt.step()
         losses.append(float(loss.detach().mean()))
     with torch.no_grad():
-        return c2w0 @ se3_exp(xi), losses
+        return _update(c2w0, xi, planar), loss.detach(), losses
+
+
+def _descend(model, obs: _Observation, c2w0: torch.Tensor, iterations: int, rays: int,
+             lr: float, planar: bool = False) -> tuple[torch.Tensor, list[float]]:
+    """iNeRF's descent from each start c2w0 (K, 4, 4) on ``rays`` pixels per iteration:
+    (refined (K, 4, 4), mean loss per iteration)."""
+    def loss_of(poses, _it):
+        return _photometric(model, obs, poses, *obs.draw(rays))
+
+    refined, _, losses = _adam(c2w0, planar, iterations, lr, loss_of)
+    return refined, losses
+
+
+def _gaussian_blur(img: torch.Tensor, sigma: float) -> torch.Tensor:
+    """(K, C, H, W) images blurred by a separable Gaussian of ``sigma`` pixels (edges
+    replicated)."""
+    r = max(1, int(math.ceil(2.5 * sigma)))
+    x = torch.arange(-r, r + 1, dtype=img.dtype, device=img.device)
+    k = torch.exp(-0.5 * (x / sigma) ** 2)
+    k = k / k.sum()
+    c = img.shape[1]
+    out = F.pad(img, (r, r, r, r), mode="replicate")
+    out = F.conv2d(out, k.view(1, 1, 1, -1).repeat(c, 1, 1, 1), groups=c)
+    return F.conv2d(out, k.view(1, 1, -1, 1).repeat(c, 1, 1, 1), groups=c)
+
+
+class _LowRes:
+    """The observed image area-averaged to ``res`` x ``res`` pixels and blurred by ``sigma``
+    of them, and the whole-image photometric error of poses rendered at that resolution."""
+
+    def __init__(self, model, obs: _Observation, res: int, sigma: float):
+        self.model, self.res, self.sigma = model, res, sigma
+        small = cv2.resize(obs.rgb.cpu().numpy(), (res, res), interpolation=cv2.INTER_AREA)
+        self.target = _gaussian_blur(
+            torch.as_tensor(small, device=obs.device).permute(2, 0, 1)[None], sigma)
+        self.sx, self.sy = res / obs.w, res / obs.h
+        v, u = torch.meshgrid(torch.arange(res, dtype=torch.float32, device=obs.device),
+                              torch.arange(res, dtype=torch.float32, device=obs.device),
+                              indexing="ij")
+        self.px, self.py = u.reshape(-1) + 0.5, v.reshape(-1) + 0.5
+        self.obs = obs
+
+    def __call__(self, c2w: torch.Tensor, _it: int = 0) -> torch.Tensor:
+        """(K,) mean squared error of the blurred renders of poses c2w (K, 4, 4)."""
+        k, n, o = c2w.shape[0], self.res * self.res, self.obs
+        rays = pixel_rays(c2w.repeat_interleave(n, 0), o.fx * self.sx, o.fy * self.sy,
+                          o.cx * self.sx, o.cy * self.sy, self.px.repeat(k), self.py.repeat(k),
+                          1 / self.sx, 1 / self.sy)
+        rgb = self.model.render_rays_differentiable(rays).rgb
+        rgb = rgb.reshape(k, self.res, self.res, 3).permute(0, 3, 1, 2)
+        return ((_gaussian_blur(rgb, self.sigma) - self.target) ** 2).mean((1, 2, 3))
 
 
 class _Frozen:
@@ -189,7 +268,8 @@ def inerf(model, image: np.ndarray, intrinsics, c2w_init: np.ndarray,
     obs = _Observation(image, intrinsics, config, torch.Generator().manual_seed(seed), device)
     c2w0 = torch.as_tensor(np.asarray(c2w_init, np.float32), device=device)[None]
     with _Frozen(model):
-        c2w, losses = _descend(model, obs, c2w0, config.iterations, config.rays, config.lr)
+        c2w, losses = _descend(model, obs, c2w0, config.iterations, config.rays, config.lr,
+                               config.planar)
         with torch.no_grad():
             loss = float(_photometric(model, obs, c2w, *_evaluation_pixels(obs, 1024, seed))[0])
     return PoseEstimate(c2w[0].cpu().numpy().astype(float), loss, time.perf_counter() - t0,
@@ -197,58 +277,98 @@ def inerf(model, image: np.ndarray, intrinsics, c2w_init: np.ndarray,
 
 
 @dataclass(frozen=True)
-class MultiStartConfig:
-    """The wider estimator's settings.
+class WideConfig:
+    """The wide estimator's settings.
 
     Attributes:
-        starts: perturbed starts (the initial guess is one of them).
-        translation: largest start offset per axis, metres.
-        rotation: largest start rotation about each axis, degrees.
-        coarse_iterations: steps every start takes before the best is chosen.
-        coarse_rays: pixels per start per coarse step.
-        refine: the iNeRF run from the best start.
+        translation: the hypothesis grid spans +-this around the guess along each moved axis,
+            metres (3 steps per axis: -, 0, +).
+        rotation: and +-this about each turned axis, degrees (5 steps: -, -/2, 0, +/2, +).
+        keep: hypotheses that descend at the coarsest level (the guess and the best scored).
+        finalists: the starts kept after each stage (lowest error at that stage); with the
+            guess, they are polished by iNeRF together, and the one with the lowest
+            full-resolution error is the estimate.
+        levels: (resolution, blur sigma in pixels of it, iterations, Adam rate) of each
+            whole-image stage, coarse to fine.
+        refine: the closing iNeRF (its ``planar`` is the estimator's).
+        planar: the ground-robot pose model (module docstring).
     """
 
-    starts: int = 8
-    translation: float = 0.25
-    rotation: float = 15.0
-    coarse_iterations: int = 20
-    coarse_rays: int = 128
-    refine: InerfConfig = InerfConfig(iterations=60)
+    translation: float = 0.2
+    rotation: float = 16.0
+    keep: int = 4
+    finalists: int = 2
+    levels: tuple = ((16, 1.0, 30, 0.03), (32, 1.0, 25, 0.01))
+    refine: InerfConfig = InerfConfig(iterations=30, lr=0.005)
+    planar: bool = False
 
 
-def localise_multistart(model, image: np.ndarray, intrinsics, c2w_init: np.ndarray,
-                        config: MultiStartConfig = MultiStartConfig(),
-                        seed: int = 0) -> PoseEstimate:
-    """The wider estimator (see the module docstring); same arguments as :func:`inerf`."""
+def _hypotheses(config: WideConfig) -> torch.Tensor:
+    """(N, 3 or 6) pose updates of the hypothesis grid (the zero update first). Planar: every
+    (dx, dy, dyaw) of the grid. 6-DoF: the grid's turns about the camera's vertical and
+    horizontal axes (the directions the image moves most) with its moves along its three axes,
+    one axis at a time."""
+    t = config.translation
+    r = math.radians(config.rotation)
+    moves = (-t, 0.0, t)
+    turns = (-r, -r / 2, 0.0, r / 2, r)
+    if config.planar:
+        grid = [(dx, dy, a) for a in turns for dx in moves for dy in moves]
+    else:
+        grid = [(rx, ry, 0.0, 0.0, 0.0, 0.0) for rx in turns for ry in turns]
+        grid += [tuple(v if i == axis else 0.0 for i in range(6))
+                 for axis in (3, 4, 5) for v in (-t, t)]
+    grid.sort(key=lambda g: sum(abs(v) for v in g))     # the zero update first
+    return torch.tensor(grid, dtype=torch.float32)
+
+
+def localise_wide(model, image: np.ndarray, intrinsics, c2w_init: np.ndarray,
+                  config: WideConfig = WideConfig(), seed: int = 0) -> PoseEstimate:
+    """The wide estimator (see the module docstring); same arguments as :func:`inerf`."""
     t0 = time.perf_counter()
     device = model.aabb.device
-    gen = torch.Generator().manual_seed(seed)
-    obs = _Observation(image, intrinsics, config.refine, gen, device)
-    c2w_init = torch.as_tensor(np.asarray(c2w_init, np.float32), device=device)
-    offsets = torch.zeros(config.starts, 6)
-    if config.starts > 1:
-        u = torch.rand(config.starts - 1, 6, generator=gen) * 2 - 1
-        offsets[1:, :3] = u[:, :3] * math.radians(config.rotation)
-        offsets[1:, 3:] = u[:, 3:] * config.translation
-    starts = c2w_init[None] @ se3_exp(offsets.to(device))
+    obs = _Observation(image, intrinsics, config.refine, torch.Generator().manual_seed(seed),
+                       device)
+    guess = torch.as_tensor(np.asarray(c2w_init, np.float32), device=device)[None]
     with _Frozen(model):
-        coarse, _ = _descend(model, obs, starts, config.coarse_iterations, config.coarse_rays,
-                             config.refine.lr)
+        coarse = _LowRes(model, obs, *config.levels[0][:2])
+        hypotheses = _hypotheses(config).to(device)
+        candidates = _update(guess.expand(len(hypotheses), 4, 4), hypotheses, config.planar)
         with torch.no_grad():
-            scores = _photometric(model, obs, coarse, *_evaluation_pixels(obs, 512, seed))
-        best = coarse[int(torch.argmin(scores))]
-    refined = inerf(model, image, intrinsics, best.cpu().numpy(), config.refine, seed)
-    return PoseEstimate(refined.c2w, refined.loss, time.perf_counter() - t0, refined.losses)
+            scores = torch.cat([coarse(chunk) for chunk in torch.split(candidates, 16)])
+        # the guess itself always descends: blurred low-resolution scores can prefer a wrong
+        # hypothesis in a view with little texture
+        order = [0] + [int(i) for i in torch.argsort(scores) if int(i) != 0]
+        c2w = candidates[order[:config.keep]]
+        for res, sigma, iterations, lr in config.levels:
+            stage = _LowRes(model, obs, res, sigma)
+            c2w, last, _ = _adam(c2w, config.planar, iterations, lr, stage)
+            c2w = c2w[torch.argsort(last)[:config.finalists]]
+        # the finalists and the guess itself (plain iNeRF's start: the low-resolution renders
+        # alias, and their optimum can lie a few degrees off a good guess) are polished
+        # together and judged at full resolution
+        c2w = torch.cat([guess, c2w])
+        refine = replace(config.refine, planar=config.planar)
+        c2w, losses = _descend(model, obs, c2w, refine.iterations, refine.rays, refine.lr,
+                               refine.planar)
+        with torch.no_grad():
+            final = _photometric(model, obs, c2w, *_evaluation_pixels(obs, 1024, seed))
+        best = int(torch.argmin(final))
+    return PoseEstimate(c2w[best].cpu().numpy().astype(float), float(final[best]),
+                        time.perf_counter() - t0, losses)
 
 
 def perturb(c2w: np.ndarray, translation: float, rotation_deg: float,
-            rng: np.random.Generator) -> np.ndarray:
+            rng: np.random.Generator, planar: bool = False) -> np.ndarray:
     """``c2w`` moved by exactly ``translation`` metres in a random direction and rotated by
-    exactly ``rotation_deg`` degrees about a random axis through the camera centre."""
+    exactly ``rotation_deg`` degrees about a random axis through the camera centre; with
+    ``planar``, the direction horizontal and the axis vertical (a ground robot's error)."""
     axis = rng.normal(size=3)
-    axis /= np.linalg.norm(axis)
     direction = rng.normal(size=3)
+    if planar:
+        axis = np.array([0.0, 0.0, rng.choice([-1.0, 1.0])])
+        direction[2] = 0.0
+    axis /= np.linalg.norm(axis)
     direction /= np.linalg.norm(direction)
     rot = cv2.Rodrigues(axis * math.radians(rotation_deg))[0]
     out = np.array(c2w, float)
