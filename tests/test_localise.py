@@ -12,6 +12,7 @@ import torch
 
 from nerfbot.data import load_dataset
 from nerfbot.eval.evaluation import evaluate
+from nerfbot.ops.cameras import Cameras, look_at
 from nerfbot.ops.lie import se3_exp
 from nerfbot.query.localise import (InerfConfig, WideConfig, _gaussian_blur, _hypotheses, inerf,
                                     interest_pixels, localise_wide, perturb, planar_update,
@@ -187,7 +188,6 @@ class _PaintedRoom(torch.nn.Module):
 
 
 def _painted_room_view(model, c2w, size=64):
-    from nerfbot.ops.cameras import Cameras
     cams = Cameras.pinhole(c2w, 70.0, size, size)
     with torch.no_grad():
         rgb = model.render_rays_differentiable(cams.rays(0)).rgb
@@ -197,7 +197,6 @@ def _painted_room_view(model, c2w, size=64):
 
 @pytest.mark.parametrize("planar", [True, False], ids=["planar", "6dof"])
 def test_the_wide_estimator_converges_where_inerf_does_not(planar):
-    from nerfbot.ops.cameras import look_at
     model = _PaintedRoom()
     truth = look_at([0.3, -0.4, 0.45], [2.0, 0.2, 0.6])
     image, intr = _painted_room_view(model, truth)

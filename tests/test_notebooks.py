@@ -22,7 +22,7 @@ import nbformat
 import numpy as np
 import pytest
 
-pytestmark = pytest.mark.slow(320)  # rough single-core seconds (tests/conftest.py)
+pytestmark = pytest.mark.slow(620)  # rough single-core seconds (tests/conftest.py)
 
 NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
 QUICKSTART = NOTEBOOKS / "01_quickstart.ipynb"
