@@ -67,6 +67,19 @@ class DriveLog:
     def collided(self) -> bool:
         return bool(self.contacts)
 
+    def estimate_errors(self, every: int) -> dict:
+        """Median and largest position error (metres) and median yaw error (degrees) of the
+        estimates steered by, at the control updates where they were made (every ``every``-th,
+        :attr:`DriveConfig.localise_every`); empty for a drive without updates."""
+        if not len(self.poses):
+            return {}
+        est, true = self.estimates[::every], self.poses[::every]
+        dxy = np.linalg.norm(est[:, :2] - true[:, :2], axis=1)
+        dyaw = np.degrees(np.abs((est[:, 2] - true[:, 2] + np.pi) % (2 * np.pi) - np.pi))
+        return {"estimate_error_m_median": float(np.median(dxy)),
+                "estimate_error_m_max": float(dxy.max()),
+                "estimate_error_deg_median": float(np.median(dyaw))}
+
 
 def _lookahead_point(path: np.ndarray, xy: np.ndarray, lookahead: float,
                      progress: int) -> tuple[np.ndarray, int]:

@@ -322,20 +322,6 @@ def _pose_source(model, world: World, cfg: NavTaskConfig, seconds: list):
     return estimate
 
 
-def _estimate_errors(drive_log: DriveLog, cfg: NavTaskConfig) -> dict:
-    """Median and largest position error (metres) and median yaw error (degrees) of the pose
-    estimates a drive steered by, at the control updates where they were made."""
-    if cfg.pose == "gt" or not len(drive_log.poses):
-        return {}
-    at = slice(0, None, cfg.drive.localise_every)
-    est, true = drive_log.estimates[at], drive_log.poses[at]
-    dxy = np.linalg.norm(est[:, :2] - true[:, :2], axis=1)
-    dyaw = np.degrees(np.abs((est[:, 2] - true[:, 2] + np.pi) % (2 * np.pi) - np.pi))
-    return {"estimate_error_m_median": float(np.median(dxy)),
-            "estimate_error_m_max": float(dxy.max()),
-            "estimate_error_deg_median": float(np.median(dyaw))}
-
-
 def trial_sheet(fmap: FloorMap, gt_map: FloorMap, planned: Optional[np.ndarray],
                 drive_log: Optional[DriveLog], start, goal, path: Path, scale: int = 4) -> None:
     """Top-down PNG, x to the right and y up: true obstacles the map misses grey, obstacles on
@@ -435,7 +421,8 @@ def run_experiment(cfg: NavTaskConfig) -> dict:
                         trial_seconds=time.perf_counter() - t0, sim_seconds=drive_log.seconds,
                         contacts=drive_log.contacts, goal_error=error,
                         localise_seconds=float(np.median(loc_seconds)) if loc_seconds else None,
-                        **_estimate_errors(drive_log, cfg),
+                        **(drive_log.estimate_errors(cfg.drive.localise_every)
+                           if cfg.pose != "gt" else {}),
                         success=bool(error <= GOAL_DISTANCE and not drive_log.contacts),
                         reason="" if error <= GOAL_DISTANCE and not drive_log.contacts else
                         ("contact with " + ", ".join(sorted(set(drive_log.contacts)))

@@ -15,7 +15,7 @@ from nerfbot.query.density import collision_cost, density_at, occupancy_volume
 from sims.robot import (add_robot, command_velocity, robot_contacts, robot_ids, robot_pose,
                         set_robot_pose)
 from sims.scene import resolve_scene
-from tasks.nav_execute import drive
+from tasks.nav_execute import DriveLog, drive
 from tasks.nav_map import (FloorMap, RobotBody, floor_map_from_volume, map_agreement,
                            true_floor_map)
 from tasks.nav_planner import (PlanningError, astar, optimise_trajectory, path_length,
@@ -299,3 +299,17 @@ def test_sensor_map_of_a_small_capture_finds_the_walls_and_furniture(tmp_path):
     # leaves only the room's edges: IoU under 0.2)
     assert agreement["iou"] > 0.35 and agreement["phantom"] < 0.05, agreement
     assert agreement["standable_kept"] > 0.85, agreement
+
+
+def test_estimate_errors_are_taken_where_the_estimates_were_made():
+    poses = np.zeros((5, 3))
+    estimates = poses.copy()
+    estimates[0] = [0.03, 0.04, np.radians(2.0)]           # made at update 0: 5 cm, 2 degrees
+    estimates[1] = [1.0, 0.0, 0.0]                         # a prediction, not an estimate
+    estimates[2, 2] = np.radians(359.0)                    # made at update 2: 1 degree (wrapped)
+    estimates[4, 0] = 0.01                                 # made at update 4: 1 cm
+    errors = DriveLog(poses, estimates).estimate_errors(every=2)
+    assert errors["estimate_error_m_median"] == pytest.approx(0.01)
+    assert errors["estimate_error_m_max"] == pytest.approx(0.05)
+    assert errors["estimate_error_deg_median"] == pytest.approx(1.0)
+    assert DriveLog(np.zeros((0, 3)), np.zeros((0, 3))).estimate_errors(every=2) == {}

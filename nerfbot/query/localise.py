@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -164,15 +164,15 @@ def _update(c2w0: torch.Tensor, xi: torch.Tensor, planar: bool) -> torch.Tensor:
 def _adam(c2w0: torch.Tensor, planar: bool, iterations: int, lr: float, loss_of
           ) -> tuple[torch.Tensor, torch.Tensor, list[float]]:
     """Adam on one pose update per start, the rate decayed to a tenth: c2w0 (K, 4, 4) ->
-    (refined (K, 4, 4), last losses (K,), mean loss per iteration). ``loss_of(poses, it)``
-    gives the (K,) losses of poses (K, 4, 4) at iteration ``it``."""
+    (refined (K, 4, 4), last losses (K,), mean loss per iteration). ``loss_of(poses)`` gives
+    the (K,) losses of poses (K, 4, 4)."""
     xi = torch.zeros(c2w0.shape[0], 3 if planar else 6, device=c2w0.device, requires_grad=True)
     opt = torch.optim.Adam([xi], lr=lr)
     losses, loss = [], torch.zeros(c2w0.shape[0])
     for it in range(iterations):
         for group in opt.param_groups:
             group["lr"] = lr * 0.1 ** (it / max(iterations - 1, 1))
-        loss = loss_of(_update(c2w0, xi, planar), it)
+        loss = loss_of(_update(c2w0, xi, planar))
         opt.zero_grad()
         loss.sum().backward()
         opt.step()
@@ -185,10 +185,8 @@ def _descend(model, obs: _Observation, c2w0: torch.Tensor, iterations: int, rays
              lr: float, planar: bool = False) -> tuple[torch.Tensor, list[float]]:
     """iNeRF's descent from each start c2w0 (K, 4, 4) on ``rays`` pixels per iteration:
     (refined (K, 4, 4), mean loss per iteration)."""
-    def loss_of(poses, _it):
-        return _photometric(model, obs, poses, *obs.draw(rays))
-
-    refined, _, losses = _adam(c2w0, planar, iterations, lr, loss_of)
+    refined, _, losses = _adam(c2w0, planar, iterations, lr,
+                               lambda poses: _photometric(model, obs, poses, *obs.draw(rays)))
     return refined, losses
 
 
@@ -221,7 +219,7 @@ class _LowRes:
         self.px, self.py = u.reshape(-1) + 0.5, v.reshape(-1) + 0.5
         self.obs = obs
 
-    def __call__(self, c2w: torch.Tensor, _it: int = 0) -> torch.Tensor:
+    def __call__(self, c2w: torch.Tensor) -> torch.Tensor:
         """(K,) mean squared error of the blurred renders of poses c2w (K, 4, 4)."""
         k, n, o = c2w.shape[0], self.res * self.res, self.obs
         rays = pixel_rays(c2w.repeat_interleave(n, 0), o.fx * self.sx, o.fy * self.sy,
@@ -290,7 +288,8 @@ class WideConfig:
             full-resolution error is the estimate.
         levels: (resolution, blur sigma in pixels of it, iterations, Adam rate) of each
             whole-image stage, coarse to fine.
-        refine: the closing iNeRF (its ``planar`` is the estimator's).
+        refine: the closing iNeRF's settings (its ``planar`` is ignored: the estimator's
+            applies).
         planar: the ground-robot pose model (module docstring).
     """
 
@@ -348,9 +347,8 @@ def localise_wide(model, image: np.ndarray, intrinsics, c2w_init: np.ndarray,
         # alias, and their optimum can lie a few degrees off a good guess) are polished
         # together and judged at full resolution
         c2w = torch.cat([guess, c2w])
-        refine = replace(config.refine, planar=config.planar)
-        c2w, losses = _descend(model, obs, c2w, refine.iterations, refine.rays, refine.lr,
-                               refine.planar)
+        c2w, losses = _descend(model, obs, c2w, config.refine.iterations, config.refine.rays,
+                               config.refine.lr, config.planar)
         with torch.no_grad():
             final = _photometric(model, obs, c2w, *_evaluation_pixels(obs, 1024, seed))
         best = int(torch.argmin(final))
