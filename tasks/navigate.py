@@ -30,6 +30,7 @@ trial in ``trials/`` (map, planned and driven paths, contacts).
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import logging
 import time
@@ -72,6 +73,14 @@ POSES = ("gt", "inerf", "wide")
 GOAL_DISTANCE = 0.10
 
 
+#: ``ngp`` options of a room's field. A room's plain walls and partitions are learnt as their
+#: visual hulls, thick bands of density on both sides that close passages; the carving prior
+#: (:attr:`~nerfbot.models.occupancy.OccupancyModelConfig.carving_weight`) thins them, and
+#: near-camera gradient damping (``near_gradient_distance``, metres) keeps floaters from the
+#: space beside the cameras, which stand among the content (BENCHMARKS.md, section 9).
+NAV_FIELD_OPTIONS = {"carving_weight": 1e-4, "near_gradient_distance": 1}
+
+
 @dataclass
 class NavTaskConfig:
     """Settings of a navigation experiment (lengths in metres)."""
@@ -90,9 +99,9 @@ class NavTaskConfig:
     capture_size: int = 128
     train_steps: int = 2000
     method: str = "ngp"
-    train_options: dict = field(default_factory=dict)
-    """Field options (``--option``), e.g. ``near_gradient_distance``: measured on two rooms in
-    BENCHMARKS.md, section 9, where it did not yet earn a place among the defaults."""
+    train_options: dict = field(default_factory=lambda: dict(NAV_FIELD_OPTIONS))
+    """Field options of the training runs (``--option`` adds to or overrides
+    :data:`NAV_FIELD_OPTIONS`)."""
     map_cell: float = 0.05
     threshold: Optional[float] = None
     """Obstacle density threshold of a field map, 1/m (None: the default of
@@ -218,13 +227,27 @@ def map_grid(world: World, cfg: NavTaskConfig) -> tuple[np.ndarray, int]:
     return np.stack([lo, lo + counts * cfg.map_cell]), int(counts.max())
 
 
+#: Where a field map tests each cell, in cells from its centre along x, y and z: the corners
+#: of the cell's inner half (2 x 2 x 2 points). A blocked cell means an obstacle somewhere
+#: in it (:meth:`FloorMap.free_for`, and the true map's rasterisation), so a cell is blocked
+#: when the density reaches the threshold at any of them; the centre alone misses an
+#: obstacle's edge that covers less than half a cell.
+CELL_TESTS = (-0.25, 0.25)
+
+
 def field_floor_map(model, world: World, cfg: NavTaskConfig) -> FloorMap:
-    """Floor map of the field's density on a grid over the room (floor to the base's top)."""
+    """Floor map of the field's density on a grid over the room (floor to the base's top),
+    each cell tested at :data:`CELL_TESTS`."""
     bounds, resolution = map_grid(world, cfg)
-    volume = occupancy_volume(model, bounds, resolution, cfg.threshold)
     body = replace(cfg.body, floor_clearance=max(cfg.body.floor_clearance,
                                                  cfg.map_floor_clearance))
-    return floor_map_from_volume(volume, body)
+    blocked = None
+    for offset in itertools.product(CELL_TESTS, repeat=3):
+        shifted = bounds + np.asarray(offset) * cfg.map_cell
+        fmap = floor_map_from_volume(occupancy_volume(model, shifted, resolution,
+                                                      cfg.threshold), body)
+        blocked = fmap.blocked if blocked is None else blocked | fmap.blocked
+    return FloorMap(blocked, bounds[0, :2], cfg.map_cell)
 
 
 def sensor_floor_map(data: Path, world: World, cfg: NavTaskConfig) -> FloorMap:
@@ -513,7 +536,8 @@ def main(argv=None) -> int:
     parser.add_argument("--capture-size", type=int, default=NavTaskConfig.capture_size)
     parser.add_argument("--option", action="append", default=[], type=parse_option,
                         metavar="KEY=VALUE",
-                        help="field option of the training runs (repeatable)")
+                        help="field option of the training runs (repeatable), added to "
+                        + ", ".join(f"{k}={v}" for k, v in NAV_FIELD_OPTIONS.items()))
     parser.add_argument("--threshold", type=float, default=None,
                         help="obstacle density of a field map, 1/m")
     parser.add_argument("--floor-clearance", type=float, default=NavTaskConfig.map_floor_clearance,
@@ -534,7 +558,7 @@ def main(argv=None) -> int:
                         capture_views=args.capture_views, capture_size=args.capture_size,
                         threshold=args.threshold, map_floor_clearance=args.floor_clearance,
                         out=args.out, device=args.device,
-                        train_options=dict(args.option),
+                        train_options={**NAV_FIELD_OPTIONS, **dict(args.option)},
                         progress=not args.no_progress)
     if args.cache is not None:
         cfg = replace(cfg, cache=args.cache)

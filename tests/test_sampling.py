@@ -505,3 +505,23 @@ def test_scattered_block_schedule_visits_every_ray_once():
         assert sorted(order) == list(range(n_blocks))
     # neighbouring iterations land far apart (what spreads an image's rows over the threads)
     assert abs(scattered(1, 256) - scattered(0, 256)) > 16
+
+
+@pytest.mark.parametrize("contract", [False, True])
+def test_random_occupied_points_fill_the_occupied_cells_evenly(contract):
+    """Points land only in occupied cells (looked up through the contraction when the grid
+    covers all of space), every occupied cell gets its share, and an empty grid gives none."""
+    grid = OccupancyGrid(torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]), resolution=8,
+                         contract=contract)
+    grid.occupied.zero_()
+    cells = torch.tensor([[1, 2, 3], [6, 6, 6], [0, 7, 4]])
+    grid.occupied[cells[:, 0], cells[:, 1], cells[:, 2]] = 1
+    x = grid.random_occupied_points(30000, torch.Generator().manual_seed(0))
+    assert x.shape == (30000, 3) and torch.isfinite(x).all()
+    ijk = ((grid.lookup_points(x) - grid.cube_min) / grid.cell_size).floor().long()
+    hit = grid.occupied[ijk[:, 0], ijk[:, 1], ijk[:, 2]].bool()
+    assert hit.all()
+    counts = torch.stack([(ijk == c).all(1).sum() for c in cells]).double()
+    assert counts.sum() == 30000 and (counts / 10000 - 1).abs().max() < 0.05
+    grid.occupied.zero_()
+    assert grid.random_occupied_points(10).shape == (0, 3)

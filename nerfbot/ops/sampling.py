@@ -196,6 +196,20 @@ class OccupancyGrid(nn.Module):
             p = self.centre + self.half * uncontract((p - self.centre) / self.half)
         return p
 
+    def random_occupied_points(self, n: int, generator: torch.Generator | None = None
+                               ) -> torch.Tensor:
+        """(n, 3) world points drawn uniformly from the occupied cells ((0, 3) if none is):
+        a cell is picked uniformly, then a point within it."""
+        cells = torch.nonzero(self.occupied.reshape(-1)).squeeze(1)
+        if len(cells) == 0:
+            return torch.zeros(0, 3, device=self.cube_min.device)
+        pick = cells[torch.randint(len(cells), (n,), generator=generator).to(cells.device)]
+        offsets = torch.rand(n, 3, generator=generator).to(self.cube_min.device)
+        p = self.cube_min + (self._cell_index[pick] + offsets) * self.cell_size
+        if self.contract:
+            p = self.centre + self.half * uncontract((p - self.centre) / self.half)
+        return p
+
     def lookup_points(self, x: torch.Tensor) -> torch.Tensor:
         """(N, 3) world points -> (N, 3) the points the grid is indexed by: ``x`` itself, or
         under ``contract`` its contracted image in metres around ``centre``."""
