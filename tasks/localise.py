@@ -33,12 +33,13 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from tqdm import tqdm
 
+from nerfbot.app.cli import parse_option
 from nerfbot.data.writers import write_json_atomic
 from nerfbot.query.localise import (InerfConfig, WideConfig, inerf, localise_wide, perturb,
                                     pose_error)
 from nerfbot.train.runs import load_model
 from tasks.nav_map import true_floor_map
-from tasks.navigate import NavTaskConfig, World, ensure_trained
+from tasks.navigate import NAV_FIELD_OPTIONS, NavTaskConfig, World, ensure_trained
 
 log = logging.getLogger(__name__)
 
@@ -194,6 +195,10 @@ def main(argv=None) -> int:
     parser.add_argument("--planar", action="store_true",
                         help="perturb and estimate (x, y, yaw) only, as a ground robot's pose")
     parser.add_argument("--train-steps", type=int, default=NavTaskConfig.train_steps)
+    parser.add_argument("--option", action="append", default=[], type=parse_option,
+                        metavar="KEY=VALUE",
+                        help="field option of the training runs (repeatable), added to "
+                        + ", ".join(f"{k}={v}" for k, v in NAV_FIELD_OPTIONS.items()))
     parser.add_argument("--cache", type=Path, default=None)
     parser.add_argument("--out", type=Path, default=Path("localise_out"))
     parser.add_argument("--device", default="cpu")
@@ -211,6 +216,7 @@ def main(argv=None) -> int:
         parser.error(f"--out {args.out} is not empty: choose a new folder")
     cfg = NavTaskConfig(scene=args.scene, scenes=args.scenes, seed=args.seed,
                         train_steps=args.train_steps, device=args.device,
+                        train_options={**NAV_FIELD_OPTIONS, **dict(args.option)},
                         progress=not args.no_progress)
     if args.cache is not None:
         cfg = replace(cfg, cache=args.cache)
