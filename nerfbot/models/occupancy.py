@@ -103,8 +103,8 @@ class OccupancyModelConfig:
     step (the optical thickness of one step). Density hidden behind a surface gets no
     photometric gradient at all, so without a prior a uniformly coloured surface is learnt as
     its visual hull (from cameras at one range of heights, a flat partition becomes a
-    lens-shaped solid half a metre thick); the prior carves what no image needs. 0 turns it
-    off."""
+    lens-shaped solid many times its thickness); the prior carves what no image needs
+    (BENCHMARKS.md, section 9). 0 turns it off."""
     carving_points: int = 4096
     """Random points per step for ``carving_weight``."""
     contraction: bool = False
