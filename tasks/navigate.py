@@ -48,7 +48,6 @@ import sims  # noqa: F401  (selects the GL backend before mujoco is imported)
 from nerfbot.app.cli import parse_option
 from nerfbot.data import load_dataset
 from nerfbot.data.writers import write_json_atomic
-from nerfbot.methods import method_defaults
 from nerfbot.query.density import OccupancyVolume, grid_points, occupancy_volume
 from nerfbot.query.localise import InerfConfig, WideConfig, inerf, localise_wide
 from nerfbot.train.checkpoints import CHECKPOINT
@@ -147,11 +146,10 @@ def ensure_capture(cfg: NavTaskConfig, seed: int) -> Path:
 
 def ensure_trained(cfg: NavTaskConfig, seed: int) -> Path:
     """The field trained ``train_steps`` steps on the capture (resumed if interrupted), in a
-    folder named by the options that differ from the method's defaults."""
+    folder named by every option given (not only those that differ from the method's current
+    defaults, so a cached run never stands for other options after the defaults change)."""
     data = ensure_capture(cfg, seed)
-    defaults = method_defaults(cfg.method)
-    opts = "".join(f"-{k}={v}" for k, v in sorted(cfg.train_options.items())
-                   if k not in defaults or v != defaults[k])
+    opts = "".join(f"-{k}={v}" for k, v in sorted(cfg.train_options.items()))
     run = scene_folder(cfg, seed) / f"{cfg.method}-{cfg.train_steps}steps{opts}"
     done = run / "done.json"
     if done.exists():

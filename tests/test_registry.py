@@ -46,7 +46,7 @@ CONDITIONING = {"tnerf": Conditioning("time", ("time",), ((0.0, 1.0),)),
 #: The renderer defaults in which tnerf, dnerf and articulated differ from ngp (the registry's
 #: CONDITIONED_NGP_RENDERER says why they are kept).
 CONDITIONED_RENDERER_DIFFERENCES = {"supersample", "supersample_from", "density_noise",
-                                    "samples_per_batch"}
+                                    "samples_per_batch", "carving_weight"}
 
 
 def _all_configs(name: str) -> tuple:

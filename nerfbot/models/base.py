@@ -70,6 +70,12 @@ class Model(nn.Module, metaclass=abc.ABCMeta):
                     cond: Optional[torch.Tensor] = None) -> RenderOutput:
         """Render (R,) rays; in eval mode without randomness."""
 
+    def render_geometry(self, rays: Rays, cond: Optional[torch.Tensor] = None) -> RenderOutput:
+        """Render (R,) rays in eval mode for what depends on density alone (opacity, depths,
+        the samples' densities); ``rgb`` may be left black. Renderers that can skip the colour
+        evaluation override this; by default it is :meth:`render_rays`."""
+        return self.render_rays(rays, None, cond)
+
     def render_rays_differentiable(self, rays: Rays, cond: Optional[torch.Tensor] = None
                                    ) -> RenderOutput:
         """Render (R,) rays as in eval mode (no randomness) but with gradients w.r.t. the

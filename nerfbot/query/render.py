@@ -41,13 +41,16 @@ def as_thresholds(threshold) -> list[float]:
 
 @torch.no_grad()
 def render_rays_chunked(model: Model, rays: Rays, chunk: int = 1 << 14, cond=None,
-                        thresholds: Sequence[float] = (), labels: bool = False) -> dict:
+                        thresholds: Sequence[float] = (), labels: bool = False,
+                        geometry_only: bool = False) -> dict:
     """Render any number of rays in chunks (eval mode, no gradients).
 
     Args:
         thresholds: K density thresholds (1/m) for threshold depth, answered in the same pass.
         labels: also render class probabilities, ``labels`` (R, C), from the model's label
             head (:func:`~nerfbot.models.labels.render_labels`; ValueError without one).
+        geometry_only: only opacity and depths are wanted (:meth:`Model.render_geometry`:
+            ``rgb`` may come back black); not with ``labels``.
 
     Returns:
         A dict of float32 tensors: rgb (R, 3), opacity, depth (expected ray distance), z_depth,
@@ -58,6 +61,8 @@ def render_rays_chunked(model: Model, rays: Rays, chunk: int = 1 << 14, cond=Non
     thresholds = as_thresholds(list(thresholds))
     if labels and model.label_head is None:
         raise ValueError("this run has no label head (train it with --labels)")
+    if labels and geometry_only:
+        raise ValueError("labels come from a full render, not a geometry-only one")
     was_training = model.training
     if was_training:  # train() walks every submodule: skip it when already in eval mode
         model.eval()
@@ -70,7 +75,8 @@ def render_rays_chunked(model: Model, rays: Rays, chunk: int = 1 << 14, cond=Non
         for i in range(0, len(rays), chunk):
             sub = rays[i:i + chunk]
             c = None if cond is None else cond[i:i + chunk]
-            out: RenderOutput = model.render_rays(sub, None, c)
+            out: RenderOutput = model.render_geometry(sub, c) if geometry_only \
+                else model.render_rays(sub, None, c)
             for k in ("rgb", "opacity", "depth", "z_depth", "median_depth"):
                 parts[k].append(getattr(out, k).float())
             parts["median_z_depth"].append((out.median_depth * sub.z_per_t).float())
@@ -106,7 +112,8 @@ def render_image(model: Model, cameras: Cameras, index: int, downscale: int = 1,
     opacity are the means of S x S rays through each pixel (:meth:`Cameras.rays`), as the
     model was trained to match anti-aliased pixels; the depths always come from the ray
     through the pixel centre, as a depth camera (and the captures' ground truth) measures
-    them. S > 1 renders up to S^2 + 1 rays per pixel; pass 1 when only depth is needed.
+    them. S > 1 renders up to S^2 + 1 rays per pixel (the centre ray without colour when the
+    S x S rays go through every pixel); pass 1 when only depth is needed.
     ``supersample_tolerance`` (None: the model's): the S x S rays go only through pixels
     whose 3 x 3 neighbourhood of centre colours spans more than it (:func:`edge_pixels`); 0
     sends them through every pixel."""
@@ -115,8 +122,10 @@ def render_image(model: Model, cameras: Cameras, index: int, downscale: int = 1,
         else float(supersample_tolerance)
     h = int(cameras.height[index]) // downscale
     w = int(cameras.width[index]) // downscale
+    # with S x S rays through every pixel, the centre rays give only depth and opacity
+    geometry_only = s > 1 and tol <= 0 and not labels
     out = _render_camera_rays(model, cameras.rays(index, downscale), chunk, cond, thresholds,
-                              labels)
+                              labels, geometry_only)
     if s > 1:
         fine_rays = cameras.rays(index, downscale, s)
         if tol > 0:
@@ -171,12 +180,12 @@ def edge_pixels(rgb: np.ndarray, tolerance: float) -> np.ndarray:
 
 
 def _render_camera_rays(model: Model, rays: Rays, chunk: int, cond, thresholds,
-                        labels: bool = False) -> dict:
+                        labels: bool = False, geometry_only: bool = False) -> dict:
     """:func:`render_rays_chunked` of one camera's rays; ``cond`` (D,) is that camera's."""
     if cond is not None:
         cond = torch.as_tensor(cond, dtype=torch.float32).reshape(1, -1).expand(len(rays), -1)
     return render_rays_chunked(model, rays.to(model.aabb.device), chunk, cond, thresholds,
-                               labels)
+                               labels, geometry_only)
 
 
 def sweep_conditions(conditioning, what: str, n: int, base: Optional[Sequence[float]] = None
