@@ -210,7 +210,7 @@ def _bake_plenoctree_octree(model, spec, dataset, configs, seed, progress):
 #: objects need steps more than large batches (180 s on the tabletop: 1183 steps, 35.8 dB,
 #: objects 0.9 cm, against 439 steps, 33.6 dB, 2.0 cm). The carving prior at 1e-4: in 180 s,
 #: +0.5 dB on the tabletop, +2.5 and +1.8 dB on two workspace seeds with 2-3x less depth error,
-#: even on two bins seeds and a room (BENCHMARKS.md, section 10). The current figures:
+#: within 0.3 dB on two bins seeds and a room (BENCHMARKS.md, section 10). The current figures:
 #: BENCHMARKS.md, sections 1 and 10.
 NGP_RENDERER = OccupancyModelConfig(supersample=2, supersample_from=0.5, density_noise=1.0,
                                     samples_per_batch=1 << 15, carving_weight=1e-4)

@@ -1,8 +1,9 @@
 """Rendering spends density and colour evaluations only where they change the result.
 
-- The occupancy-grid renderer marches in rounds that grow (``first_round_samples``, doubling up
-  to ``inference_round_samples``): the samples it keeps must not depend on the rounds, and
-  small first rounds must spend fewer density evaluations behind surfaces.
+- The occupancy-grid renderer's eval-mode renders march in rounds that grow
+  (``first_round_samples``, doubling up to ``inference_round_samples``): the samples kept must
+  not depend on the rounds, and small first rounds must spend fewer density evaluations
+  behind surfaces.
 - With S x S rays through every pixel, the centre ray only gives depth: it is rendered
   without colour, and the image must equal one assembled from full renders.
 """
@@ -70,8 +71,9 @@ def _model(field, first, most=16) -> OccupancyModel:
 def test_kept_samples_do_not_depend_on_the_rounds(first):
     rays = _rays()
     t_near, t_far, _ = _model(Blobs(), 16).ray_range(rays)
-    ref = _model(Blobs(), 16)._march_until_opaque(rays, t_near, t_far, None, 1e-4)
-    got = _model(Blobs(), first)._march_until_opaque(rays, t_near, t_far, None, 1e-4)
+    ref = _model(Blobs(), 16)._march_until_opaque(rays, t_near, t_far, None, 1e-4, growing=True)
+    got = _model(Blobs(), first)._march_until_opaque(rays, t_near, t_far, None, 1e-4,
+                                                     growing=True)
     assert ref[0].numel() > 0
     assert torch.equal(ref[0], got[0])  # the same samples of the same rays
     # t resumes from each round's float32 stop, so positions agree to float32 rounding

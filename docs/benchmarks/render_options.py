@@ -3,7 +3,9 @@
 The option is set on the loaded model (``config.NAME`` or ``kilo_config.NAME``) without
 retraining or re-baking. Values are timed in alternating blocks (all test images with each
 value in turn, ROUNDS rounds; medians), as ``speed_ratio.py`` times pairs: the machine's speed
-drifts between processes.
+drifts between processes. NAME ``centre_colour`` (values 0, 1) is this script's own switch:
+1 renders the centre rays of a supersampled image with colour too, as a full render, to time
+what the geometry-only centre pass (``Model.render_geometry``) saves.
 
 usage: python docs/benchmarks/render_options.py DATA RUN NAME V1,V2,...
   e.g. ... bench/final/data_ns B/octree color_min_weight 0,1e-3,1e-2,3e-2
@@ -26,8 +28,28 @@ data, run, name, values = sys.argv[1], sys.argv[2], sys.argv[3], sys.argv[4].spl
 ds = load_dataset(data)
 cams = ds.cameras(ds.indices("test"))
 model = load_model(run)[0].eval()
-holder = next((c for c in (getattr(model, "kilo_config", None), getattr(model, "config", None))
-               if c is not None and hasattr(c, name)), None)
+
+
+class CentreColour:
+    """``centre_colour``: 1 swaps the model's geometry-only render for its full one."""
+
+    def __init__(self):
+        self.geometry = model.render_geometry
+        self.centre_colour = 0
+
+    def __setattr__(self, key, value):
+        super().__setattr__(key, value)
+        if key == "centre_colour":
+            model.render_geometry = (lambda rays, cond=None: model.render_rays(rays, None, cond)) \
+                if value else self.geometry
+
+
+if name == "centre_colour":
+    holder = CentreColour()
+else:
+    holder = next((c for c in (getattr(model, "kilo_config", None),
+                               getattr(model, "config", None))
+                   if c is not None and hasattr(c, name)), None)
 if holder is None:
     sys.exit(f"{run}: the model has no render option {name!r}")
 kind = type(getattr(holder, name))

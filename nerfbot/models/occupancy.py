@@ -61,11 +61,14 @@ class OccupancyModelConfig:
     ``train_early_termination``) in training: after each round, rays that are already opaque
     stop."""
     first_round_samples: int = 4
-    """Samples per ray of the first round; each later round takes twice as many, up to
-    ``inference_round_samples``. A ray that meets a surface saturates within a few samples of
-    it: small first rounds stop such rays before they evaluate samples hidden behind it, while
-    rays through fog still reach long rounds (fewer passes). The samples kept are the same
-    whatever the rounds; only the density evaluations spent behind saturated rays change."""
+    """Samples per ray of the first round of an eval-mode render (images, depth, geometry);
+    each later round takes twice as many, up to ``inference_round_samples``. A ray that meets
+    a surface saturates within a few samples of it: small first rounds stop such rays before
+    they evaluate samples hidden behind it, while rays through fog still reach long rounds
+    (fewer passes). The samples kept are the same whatever the rounds, up to float32 rounding
+    where a round resumes. Training and the differentiable render (pose estimation) march in
+    rounds of ``inference_round_samples``: the closed-loop drive of the navigation tutorial
+    changes its outcome with float-level changes of the field, and keeps its numerics."""
     distortion_weight: float = 0.01
     """Weight of the distortion loss (mip-NeRF 360), which discourages fog spread along rays;
     distances are measured in cube diagonals. 0.01 gained 0.2-0.6 dB test PSNR on the tabletop
@@ -111,7 +114,7 @@ class OccupancyModelConfig:
     photometric gradient at all, so without a prior a uniformly coloured surface is learnt as
     its visual hull (from cameras at one range of heights, a flat partition becomes a
     lens-shaped solid many times its thickness); the prior carves what no image needs
-    (BENCHMARKS.md, section 9). 0 turns it off."""
+    (BENCHMARKS.md, sections 9 and 10). 0 turns it off; ``ngp`` trains with 1e-4."""
     carving_points: int = 4096
     """Random points per step for ``carving_weight``."""
     contraction: bool = False
@@ -281,10 +284,11 @@ class OccupancyModel(Model):
 
     def _march_until_opaque(self, rays: Rays, t_begin: torch.Tensor, t_far: torch.Tensor, cond,
                             stop_transmittance: float, with_color: bool = False,
-                            drop_hidden: bool = True):
-        """March in rounds (``first_round_samples`` samples per ray, doubling each round up to
-        ``inference_round_samples``), evaluating density after each round and dropping rays
-        whose transmittance fell below ``stop_transmittance``: later rounds are never marched.
+                            drop_hidden: bool = True, growing: bool = False):
+        """March in rounds of ``inference_round_samples`` samples per ray (with ``growing``:
+        ``first_round_samples``, doubling each round up to it), evaluating density after each
+        round and dropping rays whose transmittance fell below ``stop_transmittance``: later
+        rounds are never marched.
 
         Returns packed (ray_indices, t_starts, t_ends) of the kept samples (sorted by ray, in t
         order), their densities and (``with_color``) colours and (points, geometry features),
@@ -299,7 +303,9 @@ class OccupancyModel(Model):
         alive = t_cur < t_far
         pieces = []
         stop = math.log(stop_transmittance)
-        round_samples = min(self.config.first_round_samples, self.config.inference_round_samples)
+        round_samples = self.config.inference_round_samples
+        if growing:
+            round_samples = min(self.config.first_round_samples, round_samples)
         while bool(alive.any()):
             ids = torch.nonzero(alive).squeeze(-1)
             sub = rays[ids]
@@ -350,7 +356,8 @@ class OccupancyModel(Model):
         n = len(rays)
         t_near, t_far, _ = self.ray_range(rays)
         gidx, ts, te, sigma, _, _ = self._march_until_opaque(
-            rays, t_near, t_far, cond, self.config.early_stop_transmittance, drop_hidden=False)
+            rays, t_near, t_far, cond, self.config.early_stop_transmittance, drop_hidden=False,
+            growing=True)
         black = torch.zeros(len(gidx), 3, device=sigma.device, dtype=sigma.dtype)
         return composite(sigma, black, ts, te, gidx, n, black.new_zeros(3), t_far, rays.z_per_t)
 
@@ -362,7 +369,7 @@ class OccupancyModel(Model):
         t_near, t_far, _ = self.ray_range(rays)
         gidx, ts, te, sigma, rgb, (x, feat) = self._march_until_opaque(
             rays, t_near, t_far, cond, self.config.early_stop_transmittance, with_color=True,
-            drop_hidden=False)
+            drop_hidden=False, growing=True)
         out = composite(sigma, rgb, ts, te, gidx, n, self.background(rays.directions), t_far,
                         rays.z_per_t)
         if self.label_head is not None:

@@ -122,7 +122,7 @@ def render_image(model: Model, cameras: Cameras, index: int, downscale: int = 1,
         else float(supersample_tolerance)
     h = int(cameras.height[index]) // downscale
     w = int(cameras.width[index]) // downscale
-    # with S x S rays through every pixel, the centre rays give only depth and opacity
+    # with S x S rays through every pixel, the centre rays give only the depths
     geometry_only = s > 1 and tol <= 0 and not labels
     out = _render_camera_rays(model, cameras.rays(index, downscale), chunk, cond, thresholds,
                               labels, geometry_only)
