@@ -209,7 +209,7 @@ def _bake_plenoctree_octree(model, spec, dataset, configs, seed, progress):
 #: 180 s). 2^15 samples per step, not 2^17: on a CPU a time budget buys few steps, and small
 #: objects need steps more than large batches (180 s on the tabletop: 1183 steps, 35.8 dB,
 #: objects 0.9 cm, against 439 steps, 33.6 dB, 2.0 cm). The carving prior at 1e-4: in 180 s,
-#: +0.5 dB on the tabletop, +2.5 and +1.8 dB on two workspace seeds with 2-3x less depth error,
+#: +0.5 dB on the tabletop, +2.5 and +1.8 dB on two workspace seeds with 3-6x less depth error,
 #: within 0.3 dB on two bins seeds and a room (BENCHMARKS.md, section 10). The current figures:
 #: BENCHMARKS.md, sections 1 and 10.
 NGP_RENDERER = OccupancyModelConfig(supersample=2, supersample_from=0.5, density_noise=1.0,
