@@ -349,30 +349,28 @@ class OccupancyModel(Model):
                                               gather_rows(cond, gidx[shown])).to(rgb.dtype)
         return gidx, ts, te, sigma, rgb, (x, feat)
 
-    @torch.no_grad()
     def render_geometry(self, rays: Rays, cond=None) -> RenderOutput:
         """The eval-mode samples of :meth:`render_rays` without colours or background
         (``rgb`` is black)."""
-        n = len(rays)
-        t_near, t_far, _ = self.ray_range(rays)
-        gidx, ts, te, sigma, _, _ = self._march_until_opaque(
-            rays, t_near, t_far, cond, self.config.early_stop_transmittance, drop_hidden=False,
-            growing=True)
-        black = torch.zeros(len(gidx), 3, device=sigma.device, dtype=sigma.dtype)
-        return composite(sigma, black, ts, te, gidx, n, black.new_zeros(3), t_far, rays.z_per_t)
+        return self._render_inference(rays, cond, with_color=False)
 
     @torch.no_grad()
-    def _render_inference(self, rays: Rays, cond=None) -> RenderOutput:
+    def _render_inference(self, rays: Rays, cond=None, with_color: bool = True) -> RenderOutput:
         """Samples from each ray's entry until its transmittance falls below
-        ``early_stop_transmittance`` (:meth:`_march_until_opaque`), composited at once."""
+        ``early_stop_transmittance`` (:meth:`_march_until_opaque`), composited at once; without
+        ``with_color`` neither colours nor the background are evaluated (``rgb`` is black)."""
         n = len(rays)
         t_near, t_far, _ = self.ray_range(rays)
         gidx, ts, te, sigma, rgb, (x, feat) = self._march_until_opaque(
-            rays, t_near, t_far, cond, self.config.early_stop_transmittance, with_color=True,
-            drop_hidden=False, growing=True)
-        out = composite(sigma, rgb, ts, te, gidx, n, self.background(rays.directions), t_far,
-                        rays.z_per_t)
-        if self.label_head is not None:
+            rays, t_near, t_far, cond, self.config.early_stop_transmittance,
+            with_color=with_color, drop_hidden=False, growing=True)
+        if with_color:
+            background = self.background(rays.directions)
+        else:
+            rgb = torch.zeros(len(gidx), 3, device=sigma.device, dtype=sigma.dtype)
+            background = rgb.new_zeros(3)
+        out = composite(sigma, rgb, ts, te, gidx, n, background, t_far, rays.z_per_t)
+        if with_color and self.label_head is not None:
             out.positions, out.features = x, feat
         return out
 
