@@ -47,8 +47,9 @@ def test_eval_json(tiny_run, capsys):
 
 
 def test_eval_and_render_supersample_override(tiny_run, tmp_path, capsys):
-    """--supersample 1 renders colour through the pixel centres: other colours, the same depth;
-    a non-positive value is refused by the parser."""
+    """--supersample 1 renders colour through the pixel centres, --supersample-pattern corners
+    through the centres and corners: other colours, the same depth; a non-positive value or
+    an unknown pattern is refused by the parser."""
     capsys.readouterr()
     assert main(["eval", str(tiny_run), "--json", "--supersample", "1"]) == 0
     one = json.loads(capsys.readouterr().out)
@@ -67,6 +68,13 @@ def test_eval_and_render_supersample_override(tiny_run, tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["render", str(tiny_run), "--path", "test", "--out", str(tmp_path / "x"),
               "--supersample", "0"])
+    # the corner pattern: other colours, the same depth; its name is recorded
+    assert main(["eval", str(tiny_run), "--json", "--supersample-pattern", "corners"]) == 0
+    corners = json.loads(capsys.readouterr().out)
+    assert corners["supersample_pattern"] == "corners" and two["supersample_pattern"] == "grid"
+    assert corners["psnr"] != two["psnr"] and corners["depth_mae_m"] == two["depth_mae_m"]
+    with pytest.raises(SystemExit):
+        main(["eval", str(tiny_run), "--supersample-pattern", "diagonal"])
 
 
 def test_render_orbit_video_and_test_images(tiny_run, tmp_path):

@@ -195,6 +195,49 @@ def test_supersampled_render_averages_colour_over_the_pixel_and_keeps_centre_dep
     np.testing.assert_array_equal(depth(model, cams, 0), centre["z_depth"])
 
 
+def test_corner_pattern_weighs_the_centre_and_the_shared_corner_rays():
+    """supersample_pattern="corners": rgb and opacity are 2/3 x the centre ray's plus 1/12 x
+    each of the pixel's four corner rays; the corner rays are the pixel-centre rays of the
+    same camera shifted by half a pixel and one pixel larger; depths are the centre ray's.
+    On stripes finer than a pixel it stays closer to the area average than the centre ray."""
+    from nerfbot.models.occupancy import OccupancyModelConfig
+    from nerfbot.query.render import render_rays_chunked
+
+    aabb = torch.tensor([[-1.0, -1.0, 0.0], [1.0, 1.0, 1.0]])
+    model = OccupancyModel(StripedSlabField(), FixedBackground((1.0, 1.0, 1.0)), aabb,
+                           OccupancyModelConfig(supersample=2,
+                                                supersample_pattern="corners")).eval()
+    cams, c2w = _down_camera(size=12)
+    f = float(cams.fx[0])
+    shifted = Cameras.from_numpy(c2w[None], [[f, f, 6.5, 6.5]], [[13, 13]])
+    corners, centres = cams.corner_rays(0), shifted.rays(0)
+    torch.testing.assert_close(corners.directions, centres.directions)
+    torch.testing.assert_close(corners.z_per_t, centres.z_per_t)
+    centre = render_image(model, cams, 0, supersample=1)
+    at_corners = render_rays_chunked(model, corners)
+    c_rgb = at_corners["rgb"].reshape(13, 13, 3).numpy()
+    c_op = at_corners["opacity"].reshape(13, 13).numpy()
+    quad = (lambda a: (a[:-1, :-1] + a[:-1, 1:] + a[1:, :-1] + a[1:, 1:]) / 12.0)
+    for img in (render_image(model, cams, 0),
+                render_image(model, cams, 0, supersample_pattern="corners")):
+        np.testing.assert_allclose(img["rgb"], 2 / 3 * centre["rgb"] + quad(c_rgb), atol=1e-6)
+        np.testing.assert_allclose(img["opacity"], 2 / 3 * centre["opacity"] + quad(c_op),
+                                   atol=1e-6)
+        for k in ("z_depth", "depth", "median_z_depth"):
+            np.testing.assert_array_equal(img[k], centre[k])
+    area = render_image(model, cams.scaled(8), 0, supersample=1)["rgb"]
+    area = area.reshape(12, 8, 12, 8, 3).mean((1, 3))
+    error = (lambda a: np.abs(a - area).mean())
+    assert error(img["rgb"]) < 0.6 * error(centre["rgb"])
+    grid = render_image(model, cams, 0, supersample_pattern="grid")
+    np.testing.assert_array_equal(grid["rgb"], render_image(model, cams, 0, supersample=2,
+                                  supersample_pattern="grid")["rgb"])
+    with pytest.raises(ValueError, match="supersample_pattern"):
+        render_image(model, cams, 0, supersample_pattern="diagonal")
+    with pytest.raises(ValueError, match="supersample_pattern"):
+        OccupancyModelConfig(supersample_pattern="diagonal")
+
+
 class WideStripedSlabField(StripedSlabField):
     """Stripes 20 cm wide: uniform regions a few pixels across, edges between them."""
 

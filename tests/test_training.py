@@ -276,16 +276,17 @@ def _image_points(rays, cams, slot) -> np.ndarray:
     return np.asarray(out)
 
 
-@pytest.mark.parametrize("s", [1, 2, 3])
-def test_supersampled_training_rays_stratify_their_pixel(tiny_capture, s):
-    """PixelBank.sample(n, g, s): n pixels, s x s rays each (pixel after pixel), one through a
-    random point of each of the s x s cells of the pixel; s = 1 is the pixel centre."""
+@pytest.mark.parametrize("s,jitter", [(1, False), (1, True), (2, False), (3, True)])
+def test_supersampled_training_rays_stratify_their_pixel(tiny_capture, s, jitter):
+    """PixelBank.sample(n, g, s, jitter): n pixels, s x s rays each (pixel after pixel), one
+    through a random point of each of the s x s cells of the pixel; s = 1 is the pixel centre,
+    or with jitter a random point of the pixel."""
     from nerfbot.data.pixels import PixelBank
 
     ds = load_dataset(tiny_capture[0])
     bank = PixelBank(ds, ds.indices("train"))
     n, k = 40, s * s
-    rays, colours, slot = bank.sample(n, torch.Generator().manual_seed(3), s)
+    rays, colours, slot = bank.sample(n, torch.Generator().manual_seed(3), s, jitter=jitter)
     assert len(rays) == n * k and colours.shape == (n, 3) and slot.shape == (n,)
     local = bank.last_pixels - bank.offsets[slot]
     w = bank.cameras.width[slot]
@@ -293,7 +294,7 @@ def test_supersampled_training_rays_stratify_their_pixel(tiny_capture, s):
     uv = _image_points(rays, bank.cameras, slot.repeat_interleave(k)).reshape(n, k, 2)
     rel = uv - np.stack([u, v], -1)[:, None, :]  # position inside the pixel, in [0, 1)
     assert (rel > -1e-4).all() and (rel < 1 + 1e-4).all()
-    if s == 1:
+    if s == 1 and not jitter:
         np.testing.assert_allclose(rel[:, 0], 0.5, atol=1e-4)
     else:
         cell = np.floor(np.clip(rel, 0, 1 - 1e-6) * s).astype(int)
@@ -333,6 +334,34 @@ def test_supersampled_loss_compares_the_pixel_mean_colour(tiny_capture, tmp_path
         with pytest.raises(ValueError, match="supersample"):
             Trainer(ds, tmp_path / "bad", TrainConfig(method="ngp", max_steps=1, progress=False,
                                                       options=bad))
+
+
+@pytest.mark.parametrize("jitter", [False, True])
+def test_pixel_jitter_option_reaches_the_training_batches(tiny_capture, tmp_path, jitter):
+    """``pixel_jitter`` (an ngp option) makes the trainer draw one ray through a random point
+    of each pixel; off, the rays go through the pixel centres."""
+    from nerfbot.train.trainer import batch_loss
+
+    ds = load_dataset(tiny_capture[0])
+    cfg = TrainConfig(method="ngp", max_steps=1, seed=0, progress=False,
+                      options={**TINY_NGP, "supersample": 1, "pixel_jitter": jitter})
+    trainer = Trainer(ds, tmp_path / "run", cfg)
+    assert trainer.model.pixel_jitter is jitter
+    seen = []
+    sample = trainer.bank.sample
+
+    def recording(n, generator, supersample=1, jitter=False):
+        rays, colours, slot = sample(n, generator, supersample, jitter)
+        seen.append(_image_points(rays, trainer.bank.cameras, slot))
+        return rays, colours, slot
+
+    trainer.bank.sample = recording
+    batch_loss(trainer.model, trainer.bank, 64, torch.Generator().manual_seed(2), 0.3)
+    rel = seen[0] - np.floor(seen[0] + 1e-4)                     # position inside the pixel
+    if jitter:
+        assert np.abs(rel - 0.5).max() > 0.2
+    else:
+        np.testing.assert_allclose(rel, 0.5, atol=1e-3)
 
 
 def test_density_noise_scales_training_densities_and_leaves_rendering_alone(tiny_capture, tmp_path):

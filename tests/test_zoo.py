@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import math
 import os
 
@@ -19,21 +20,22 @@ from sims.cli import add_capture_arguments, rigs_from_args
 from sims.manifest import custom_numeric, declared_objects, declared_obstacles, scene_manifest
 from sims.rigs import RigConfig, default_rig, make_test_rig, rig_poses
 from sims.scene import builtin_scenes, generated_scene, load_model, resolve_scene, scene_cache_dir
+from sims.sensor import DepthSensorModel
 from sims.zoo import bins, room, workspace, yard
 from sims.zoo.bins import bins_scene
-from sims.zoo.room import room_scene
+from sims.zoo.room import room_glass_scene, room_scene
 from sims.zoo.workspace import workspace_scene
 from sims.zoo.yard import yard_scene
 
 pytestmark = pytest.mark.slow(25)
 
-FAMILIES = {"workspace": workspace_scene, "room": room_scene, "bins": bins_scene,
-            "yard": yard_scene}
+FAMILIES = {"workspace": workspace_scene, "room": room_scene, "room_glass": room_glass_scene,
+            "bins": bins_scene, "yard": yard_scene}
 SEEDS = (0, 1, 7)
 SIZE = 32
 #: Capture format per family: both readers are exercised.
-FORMATS = {"workspace": "nerfstudio", "room": "nerfstudio", "bins": "blender",
-           "yard": "blender"}
+FORMATS = {"workspace": "nerfstudio", "room": "nerfstudio", "room_glass": "nerfstudio",
+           "bins": "blender", "yard": "blender"}
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -322,3 +324,57 @@ def test_only_the_yard_loads_as_unbounded(captures, family):
         assert (ds.aabb[1] - ds.aabb[0]).max() < 20.0
     else:
         assert ds.extras["space"] == "bounds from the manifest: a box"
+
+
+# -- room_glass -----------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("seed", (0, 3))
+def test_room_glass_is_the_room_with_a_glass_partition(seed):
+    """room_glass:K keeps room:K's layout; its partition panels are transparent (manifest) and
+    an opaque post stands at each jamb without narrowing the doorway."""
+    plain, plain_data = _forward(f"room:{seed}")
+    glass, glass_data = _forward(f"room_glass:{seed}")
+    plain_obstacles = scene_manifest(plain, plain_data, "room", "test")["obstacles"]
+    manifest = scene_manifest(glass, glass_data, "room_glass", "test")
+    for name, box in plain_obstacles.items():                  # the same layout
+        np.testing.assert_allclose(manifest["obstacles"][name], box, atol=1e-6)
+    panels = sorted(n for n in plain_obstacles if n.startswith("partition"))
+    assert sorted(manifest["transparent_geoms"]) == panels
+    assert {"post_a", "post_b"} <= set(manifest["obstacles"])
+    x0, y0, x1, y1 = custom_numeric(glass, "nerfbot_passage")
+    assert np.allclose([x0, y0, x1, y1], custom_numeric(plain, "nerfbot_passage"))
+    along = 1 if abs(y1 - y0) > abs(x1 - x0) else 0
+    (a_lo, a_hi), (b_lo, b_hi) = (manifest["obstacles"][f"post_{s}"] for s in "ab")
+    jamb_a, jamb_b = sorted([(x0, y0)[along], (x1, y1)[along]])
+    assert a_hi[along] == pytest.approx(jamb_a, abs=1e-4)       # posts end at the jambs
+    assert b_lo[along] == pytest.approx(jamb_b, abs=1e-4)
+
+
+def test_room_glass_depth_sensor_sees_through_the_partition(tmp_path):
+    """A camera facing a glass panel from 1.5 m: the true depth stops at the glass, the
+    simulated depth sensor reads what lies behind it."""
+    model, data = _forward("room_glass:0")
+    x0, y0, x1, y1 = custom_numeric(model, "nerfbot_passage")
+    jambs = np.array([[x0, y0], [x1, y1]])
+    along = (jambs[1] - jambs[0]) / np.linalg.norm(jambs[1] - jambs[0])
+    across = np.array([-along[1], along[0]])
+    lo, hi = np.asarray(scene_manifest(model, data, "room_glass", "test")["obstacles"]
+                        ["partition_a_0"])
+    panel = 0.5 * (lo[:2] + hi[:2])                              # a panel's centre
+    height = 0.5 * hi[2]
+    # look at the panel from whichever side has room for the camera
+    room_w, room_d, _ = custom_numeric(model, "nerfbot_room_size")
+    eye = panel + 1.5 * across
+    if abs(eye[0]) > room_w / 2 - 0.2 or abs(eye[1]) > room_d / 2 - 0.2:
+        eye = panel - 1.5 * across
+    poses = tmp_path / "poses.json"
+    poses.write_text(json.dumps([{"eye": [*eye, height], "target": [*panel, height]}]))
+    rig = RigConfig(kind="explicit", count=0, width=SIZE, height=SIZE, fov_deg=30.0,
+                    poses_file=poses)
+    folder = capture("room_glass:0", rig, None, tmp_path / "data", progress=False,
+                     sensor=DepthSensorModel(dropout=0.0, edge_jump=0.0))
+    ds = load_dataset(folder)
+    centre = (slice(SIZE // 2 - 4, SIZE // 2 + 4),) * 2
+    depth, sensed = ds.depths[0][centre], ds.sensor_depths[0][centre]
+    assert np.allclose(depth, 1.5 - room.PARTITION_THICKNESS / 2, atol=0.02)
+    assert (sensed > depth + 0.5).all()                         # the wall beyond the glass

@@ -53,7 +53,7 @@ else:
 if holder is None:
     sys.exit(f"{run}: the model has no render option {name!r}")
 kind = type(getattr(holder, name))
-values = [kind(float(v)) for v in values]
+values = [v if kind is str else kind(float(v)) for v in values]
 times = {v: [] for v in values}
 render_image(model, cams, 0)
 for _ in range(ROUNDS):

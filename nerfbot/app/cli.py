@@ -449,7 +449,8 @@ def cmd_eval(args) -> int:
         from nerfbot.query.localise import InerfConfig
         refine = InerfConfig(iterations=100, rays=1024, lr=2e-3)
     metrics = evaluate(model, ds, args.split, downscale=args.downscale,
-                       supersample=args.supersample, refine_poses=refine)
+                       supersample=args.supersample, refine_poses=refine,
+                       supersample_pattern=args.supersample_pattern)
     metrics.update(method=info["spec"]["method"], num_params=num_params(model),
                    train_seconds=info["train_seconds"], steps=info["step"], split=args.split,
                    data=str(data))
@@ -775,7 +776,8 @@ def cmd_render(args) -> int:
         raise UsageError(f"--what labels: {run} was trained without labels (train with --labels)")
     n_classes = model.label_head.n_classes if labels else 0
     images = (render_image(model, cams, i, cond=conds[i], supersample=args.supersample,
-                           thresholds=thresholds, labels=labels)
+                           thresholds=thresholds, labels=labels,
+                           supersample_pattern=args.supersample_pattern)
               for i in range(len(cams)))
     images = tqdm(images, total=len(cams), desc="render", disable=args.no_progress)
     if video:
@@ -1236,6 +1238,10 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
                         "area-averaged (the multiscale protocol; default 1)")
     p.add_argument("--supersample", type=_positive_int, default=None, metavar="S",
                    help="S x S rays per pixel for colour (default: what the run was trained with)")
+    p.add_argument("--supersample-pattern", default=None, choices=("grid", "corners"),
+                   help="where supersampled colour rays go: an S x S grid in each pixel, or "
+                        "the pixel's centre and its 4 corners, shared with its neighbours "
+                        "(about 2 rays per pixel; default: the run's option)")
     p.add_argument("--refine-poses", action="store_true",
                    help="refine each view's pose against the field first (iNeRF, 100 steps): "
                         "for views posed by structure from motion, whose errors are the poses'")
@@ -1345,6 +1351,10 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
     p.add_argument("--supersample", type=_positive_int, default=None, metavar="S",
                    help="S x S rays per pixel for colour (default: what the run was trained "
                         "with; 1 renders S^2 + 1 times fewer rays)")
+    p.add_argument("--supersample-pattern", default=None, choices=("grid", "corners"),
+                   help="where supersampled colour rays go: an S x S grid in each pixel, or "
+                        "the pixel's centre and its 4 corners, shared with its neighbours "
+                        "(about 2 rays per pixel; default: the run's option)")
     p.add_argument("--size", type=_image_side, nargs="+", default=None, metavar="N",
                    help="orbit image size N or W H (default: the training size)")
     p.add_argument("--depth-mode", default=None, choices=("expected", "median", "threshold"),

@@ -269,16 +269,17 @@ class PixelBank:
         share = self._importance[p].double() * drawable / self._importance_cdf[-1]
         return (1.0 / ((1.0 - f) + f * share)).pow(self.importance_debias).float()
 
-    def sample(self, n: int, generator: torch.Generator, supersample: int = 1
-               ) -> tuple[Rays, torch.Tensor, torch.Tensor]:
+    def sample(self, n: int, generator: torch.Generator, supersample: int = 1,
+               jitter: bool = False) -> tuple[Rays, torch.Tensor, torch.Tensor]:
         """``n`` random pixels: their rays, colours (n, 3) float32 in [0, 1], frame slots (n,).
         Their pixel indices are kept in :attr:`last_pixels`; masked-out pixels are never drawn.
         After :meth:`set_importance`, the first ``round(n * fraction)`` are drawn by the
         importance weights, the others uniformly.
 
-        With ``supersample`` S = 1 the rays go through the pixel centres: (n,) rays. With S > 1
-        each pixel gets S x S rays, one through a uniformly random point of each cell of an
-        S x S grid over the pixel (stratified): (n * S * S,) rays, pixel after pixel."""
+        With ``supersample`` S = 1 the rays go through the pixel centres, or with ``jitter``
+        through a uniformly random point of each pixel: (n,) rays. With S > 1 each pixel gets
+        S x S rays, one through a uniformly random point of each cell of an S x S grid over the
+        pixel (stratified): (n * S * S,) rays, pixel after pixel."""
         k = round(n * self.importance_fraction) if self._importance_cdf is not None else 0
         p = self._uniform_pixels(n - k, generator)
         if k:
@@ -286,26 +287,27 @@ class PixelBank:
         self.last_pixels = p
         self.last_weights = None if self._importance is None else self._loss_weights(p)
         slot = torch.searchsorted(self.offsets[1:], p, right=True)
-        rays, colours = self._pixel_rays(p, slot, generator, supersample)
+        rays, colours = self._pixel_rays(p, slot, generator, supersample, jitter)
         return rays, colours, slot
 
     def _pixel_rays(self, p: torch.Tensor, slot: torch.Tensor, generator: torch.Generator,
-                    supersample: int) -> tuple[Rays, torch.Tensor]:
+                    supersample: int, jitter: bool = False) -> tuple[Rays, torch.Tensor]:
         """Rays (n * S * S,) through pixels ``p`` (n,) of frame slots ``slot``, and their
-        colours (n, 3) float32 in [0, 1] (see :meth:`sample`)."""
+        colours (n, 3) float32 in [0, 1] (see :meth:`sample`; S = 1 without ``jitter``: the
+        pixel centres)."""
         n = len(p)
         local = p - self.offsets[slot]
         w = self.cameras.width[slot]
         v, u = local // w, local % w
         cam = self.cameras
-        if supersample == 1:
+        if supersample == 1 and not jitter:
             px, py, ray_slot = u.float() + 0.5, v.float() + 0.5, slot
         else:
             k = supersample * supersample
             cell = torch.arange(k, device=self.device)
-            jitter = torch.rand((n, k, 2), generator=generator).to(self.device)
-            px = (u[:, None] + ((cell % supersample)[None] + jitter[..., 0]) / supersample)
-            py = (v[:, None] + ((cell // supersample)[None] + jitter[..., 1]) / supersample)
+            offset = torch.rand((n, k, 2), generator=generator).to(self.device)
+            px = (u[:, None] + ((cell % supersample)[None] + offset[..., 0]) / supersample)
+            py = (v[:, None] + ((cell // supersample)[None] + offset[..., 1]) / supersample)
             px, py = px.reshape(-1).float(), py.reshape(-1).float()
             ray_slot = slot.repeat_interleave(k)
         rays = pixel_rays(cam.c2w[ray_slot], cam.fx[ray_slot], cam.fy[ray_slot],

@@ -128,7 +128,8 @@ class _PooledPSNR:
 
 def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: int | None = None,
              with_ssim: bool = True, downscale: int = 1, supersample: int | None = None,
-             refine_poses: InerfConfig | None = None) -> dict:
+             refine_poses: InerfConfig | None = None,
+             supersample_pattern: str | None = None) -> dict:
     """Render every frame of ``split`` and compare with the ground truth.
 
     Returns psnr / ssim (means over images); depth_mae_m / depth_rmse_m of the expected z-depth
@@ -144,7 +145,8 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
     (None without segmentation); for a model with a label head and test frames with
     segmentation, label_miou (mean IoU over the classes present, pooled over the frames'
     pixels: :func:`~nerfbot.data.labels.mean_iou`) and label_iou {class: IoU};
-    render_ms_per_image (median over images); num_images; downscale; supersample.
+    render_ms_per_image (median over images); num_images; downscale; supersample;
+    supersample_pattern.
 
     Pixels the dataset's masks mark invalid (``mask_path``, or outside an undistorted image)
     are left out of every score: psnr takes the mean squared error over the valid pixels, ssim
@@ -153,7 +155,8 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
     num_images and render time only.
 
     Colour is rendered with ``supersample`` x ``supersample`` rays per pixel (None: the
-    model's own :attr:`~nerfbot.models.base.Model.supersample`), depth from the pixel centres
+    model's own :attr:`~nerfbot.models.base.Model.supersample`) spread over each pixel as
+    ``supersample_pattern`` says (None: the model's), depth from the pixel centres
     (:func:`~nerfbot.query.render.render_image`).
 
     ``downscale`` K > 1 evaluates at 1/K resolution (the multiscale protocol): the cameras are
@@ -201,7 +204,7 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
         cond = None if conds is None else conds[i]
         t0 = time.perf_counter()
         out = render_image(model, cams, slot, cond=cond, supersample=supersample,
-                           labels=head is not None)
+                           labels=head is not None, supersample_pattern=supersample_pattern)
         times.append(time.perf_counter() - t0)
         h, w = out["rgb"].shape[:2]
         gt = downscale_area(dataset.image_float(i), w, h)
@@ -257,6 +260,8 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
         "num_images": len(indices),
         "downscale": downscale,
         "supersample": model.supersample if supersample is None else supersample,
+        "supersample_pattern": model.supersample_pattern if supersample_pattern is None
+        else supersample_pattern,
     }
     if label_true:
         miou, iou = mean_iou(np.concatenate(label_pred), np.concatenate(label_true),

@@ -91,6 +91,14 @@ class Model(nn.Module, metaclass=abc.ABCMeta):
     #: their colours averaged (see :func:`nerfbot.train.trainer.batch_loss`); 1: the pixel centre.
     supersample: int = 1
 
+    #: With S = 1, training rays go through a uniformly random point of their pixel instead of
+    #: its centre (:meth:`nerfbot.data.pixels.PixelBank.sample`).
+    pixel_jitter: bool = False
+
+    #: Where a render with S > 1 casts its rays over a pixel: "grid" or "corners"
+    #: (:func:`nerfbot.query.render.render_image`).
+    supersample_pattern: str = "grid"
+
     #: Rendering casts the S x S rays only through pixels whose 3 x 3 neighbourhood of centre-ray
     #: colours spans more than this (:func:`nerfbot.query.render.render_image`); 0: every pixel.
     supersample_tolerance: float = 0.0

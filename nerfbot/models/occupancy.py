@@ -98,11 +98,23 @@ class OccupancyModelConfig:
     camera's sensor): one central ray can match a pixel that an edge crosses only by making
     the edge semi-transparent, and an object a few pixels wide then becomes a veil whose
     depth lies behind it. Costs S^2 rays per training pixel and S^2 + 1 per rendered pixel."""
+    pixel_jitter: bool = False
+    """With S = 1 (and before ``supersample_from``), training rays go through a uniformly
+    random point of their pixel instead of its centre, as Instant-NGP trains: the field fits
+    each pixel's mean over its area instead of asking one central ray to match it. Renders
+    still cast rays through the pixel centres."""
     supersample_tolerance: float = 0.0
     """Rendering casts the S x S rays only through pixels whose 3 x 3 neighbourhood of
     centre-ray colours spans more than this (max - min in some channel, colours in [0, 1]);
     elsewhere the centre ray's colour stands for the pixel's mean, which in a smooth region it
     matches to second order. 0: S x S rays through every pixel. Training is unaffected."""
+    supersample_pattern: str = "grid"
+    """Where a render with S > 1 casts its rays over a pixel: "grid", S x S rays through the
+    centres of an S x S grid of cells (as training spreads them) plus the centre ray for
+    depth; "corners", the centre ray and the pixel's four corner rays, each shared by the
+    four pixels that meet there, weighted 2/3 and 1/12 each (the mean over the pixel square
+    to second order along each axis): about 2 rays per pixel instead of S^2 + 1
+    (:func:`nerfbot.query.render.render_image`). Training is unaffected."""
     supersample_from: float = 0.0
     """Fraction of the training budget before which training rays go through the pixel
     centres, S x S per pixel after it. With a fixed number of samples per batch, S x S rays
@@ -136,6 +148,9 @@ class OccupancyModelConfig:
                      "supersample_tolerance", "carving_weight"):
             if getattr(self, name) < 0:
                 raise ValueError(f"option {name}: must be >= 0, got {getattr(self, name)}")
+        if self.supersample_pattern not in ("grid", "corners"):
+            raise ValueError(f"option supersample_pattern: must be 'grid' or 'corners', got "
+                             f"{self.supersample_pattern!r}")
         for name in ("early_stop_transmittance", "supersample_from", "full_march_kept_fraction"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"option {name}: must be in [0, 1], got {getattr(self, name)}")
@@ -189,6 +204,14 @@ class OccupancyModel(Model):
     @property
     def supersample(self) -> int:
         return self.config.supersample
+
+    @property
+    def pixel_jitter(self) -> bool:
+        return self.config.pixel_jitter
+
+    @property
+    def supersample_pattern(self) -> str:
+        return self.config.supersample_pattern
 
     @property
     def supersample_tolerance(self) -> float:

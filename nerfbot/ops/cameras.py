@@ -184,6 +184,21 @@ class Cameras:
         return Rays(c2w[:3, 3].expand_as(directions).contiguous(), directions,
                     z_per_t.to(dev, copy=True), radii.to(dev, copy=True))
 
+    def corner_rays(self, index: int, downscale: int = 1) -> "Rays":
+        """Rays through the corners of camera ``index``'s pixels: ((H+1) * (W+1),) rays,
+        row-major over the (H+1) x (W+1) grid of corners. Corner (i, j) is the top-left corner
+        of pixel (i, j), so pixel (i, j) has corners (i, j), (i, j+1), (i+1, j) and (i+1, j+1),
+        each shared with the pixels around it. ``downscale`` as in :meth:`rays`."""
+        w = int(self.width[index]) // downscale
+        h = int(self.height[index]) // downscale
+        sx, sy = float(self.width[index]) / w, float(self.height[index]) / h
+        dev = self.c2w.device
+        v, u = torch.meshgrid(torch.arange(h + 1, dtype=torch.float32, device=dev),
+                              torch.arange(w + 1, dtype=torch.float32, device=dev),
+                              indexing="ij")
+        return pixel_rays(self.c2w[index], self.fx[index], self.fy[index], self.cx[index],
+                          self.cy[index], u.reshape(-1) * sx, v.reshape(-1) * sy, sx, sy)
+
     def scaled(self, factor: float) -> "Cameras":
         """The same cameras imaging at ``factor`` times the resolution (``scaled(1 / K)``: K
         times fewer pixels per side, K times larger pixels). Sizes round down to whole pixels

@@ -26,6 +26,9 @@ from nerfbot.ops.rendering import RenderOutput, threshold_depth
 DEPTH_MODES = ("expected", "median", "threshold")
 _IMAGE_KEYS = ("rgb", "opacity", "depth", "z_depth", "median_depth", "median_z_depth")
 
+#: How a supersampled render spreads its rays over a pixel (:func:`render_image`).
+SUPERSAMPLE_PATTERNS = ("grid", "corners")
+
 
 def as_thresholds(threshold) -> list[float]:
     """Density threshold(s) in 1/m (a number, a sequence or None) as a list, each checked finite
@@ -98,10 +101,17 @@ def render_rays_chunked(model: Model, rays: Rays, chunk: int = 1 << 14, cond=Non
     return out
 
 
+#: Weight of the centre ray in a ``corners`` supersampled pixel; each of its four corner rays
+#: weighs a quarter of the rest. 2/3 and 1/12 reproduce the mean over the pixel square of any
+#: quadratic in x or in y (Simpson's rule along each axis).
+CORNER_CENTRE_WEIGHT = 2.0 / 3.0
+
+
 def render_image(model: Model, cameras: Cameras, index: int, downscale: int = 1,
                  chunk: int = 1 << 14, cond=None, thresholds: Sequence[float] = (),
                  supersample: Optional[int] = None,
-                 supersample_tolerance: Optional[float] = None, labels: bool = False) -> dict:
+                 supersample_tolerance: Optional[float] = None, labels: bool = False,
+                 supersample_pattern: Optional[str] = None) -> dict:
     """Render camera ``index`` as numpy images: rgb (H, W, 3) in [0, 1], and (H, W) opacity,
     depth (ray distance, m), z_depth (m), median_depth (ray distance, m), median_z_depth (m);
     with ``thresholds`` (K values, 1/m) also threshold_depth / threshold_z_depth (K, H, W),
@@ -116,12 +126,34 @@ def render_image(model: Model, cameras: Cameras, index: int, downscale: int = 1,
     S x S rays go through every pixel); pass 1 when only depth is needed.
     ``supersample_tolerance`` (None: the model's): the S x S rays go only through pixels
     whose 3 x 3 neighbourhood of centre colours spans more than it (:func:`edge_pixels`); 0
-    sends them through every pixel."""
+    sends them through every pixel.
+
+    ``supersample_pattern`` (None: the model's) "corners" replaces the S x S rays by the
+    pixel's four corner rays (:meth:`Cameras.corner_rays`, each shared by the pixels that meet
+    there): rgb and opacity are :data:`CORNER_CENTRE_WEIGHT` x the centre ray's plus the rest
+    spread evenly over the corners, (H+1)(W+1) + HW rays in all, about 2 per pixel; the
+    tolerance does not apply."""
     s = model.supersample if supersample is None else supersample
     tol = getattr(model, "supersample_tolerance", 0.0) if supersample_tolerance is None \
         else float(supersample_tolerance)
+    pattern = getattr(model, "supersample_pattern", "grid") if supersample_pattern is None \
+        else supersample_pattern
+    if pattern not in SUPERSAMPLE_PATTERNS:
+        raise ValueError(f"supersample_pattern must be one of {SUPERSAMPLE_PATTERNS}, got "
+                         f"{pattern!r}")
     h = int(cameras.height[index]) // downscale
     w = int(cameras.width[index]) // downscale
+    if s > 1 and pattern == "corners":
+        out = _render_camera_rays(model, cameras.rays(index, downscale), chunk, cond,
+                                  thresholds, labels)
+        corner = _render_camera_rays(model, cameras.corner_rays(index, downscale), chunk, cond,
+                                     ())
+        for key, shape in (("rgb", (h + 1, w + 1, 3)), ("opacity", (h + 1, w + 1))):
+            c = corner[key].reshape(shape)
+            around = 0.25 * (c[:-1, :-1] + c[:-1, 1:] + c[1:, :-1] + c[1:, 1:])
+            out[key] = CORNER_CENTRE_WEIGHT * out[key] \
+                + (1.0 - CORNER_CENTRE_WEIGHT) * around.reshape(out[key].shape)
+        return _image_result(out, h, w, labels)
     # with S x S rays through every pixel, the centre rays give only the depths
     geometry_only = s > 1 and tol <= 0 and not labels
     out = _render_camera_rays(model, cameras.rays(index, downscale), chunk, cond, thresholds,
@@ -143,6 +175,11 @@ def render_image(model: Model, cameras: Cameras, index: int, downscale: int = 1,
             pick = pick.to(out["rgb"].device)
             out["rgb"][pick] = sub["rgb"].reshape(len(pick), s * s, 3).mean(1)
             out["opacity"][pick] = sub["opacity"].reshape(len(pick), s * s).mean(1)
+    return _image_result(out, h, w, labels)
+
+
+def _image_result(out: dict, h: int, w: int, labels: bool) -> dict:
+    """:func:`render_image`'s numpy images from the per-ray tensors of one camera."""
     img = {k: v.cpu().numpy() for k, v in out.items()}
     result = {"rgb": img["rgb"].reshape(h, w, 3).clip(0, 1),
               **{k: img[k].reshape(h, w) for k in _IMAGE_KEYS[1:]}}

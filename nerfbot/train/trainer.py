@@ -120,7 +120,7 @@ def batch_loss(model: Model, bank: "PixelBank", n_rays: int, generator: torch.Ge
     if bank.clicks is not None and label_weight > 0:  # at most a quarter of the pixels
         clicks = max(1, min(label_pixels, len(bank.clicks), n_rays // k // 4))
     n_pixels = max(1, n_rays // k - keypoints - clicks)
-    rays, target, slot = bank.sample(n_pixels, generator, s)
+    rays, target, slot = bank.sample(n_pixels, generator, s, jitter=model.pixel_jitter)
     parts = [(rays, target, slot)]
     depth = click_labels = None
     if keypoints:

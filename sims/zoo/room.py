@@ -28,6 +28,14 @@ in large rooms), a soft directional fill from above and a weak bounce light from
 ceiling, with seeded colours, intensities and directions.
 
 Use as a scene name: ``room`` (seed 0) or ``room:K``.
+
+``room_glass`` / ``room_glass:K`` is room ``K`` (the same layout, textures and lights) with a
+glass partition: its panels are clear glass (alpha :data:`GLASS_ALPHA`, strong specular
+highlights, as in ``glassware``) held by opaque posts at the doorway's jambs, named
+``partition_a_0``, ... and ``post_a`` / ``post_b``. The panels are listed as transparent in
+the capture manifest, so the simulated depth sensor sees through them while the ground-truth
+depth, segmentation and obstacle footprints keep them: a map made from the sensor alone
+shows open floor where the glass stands.
 """
 
 from __future__ import annotations
@@ -62,6 +70,11 @@ DOORWAY_APPROACH = 0.5
 FURNITURE_GAP = 0.7
 #: Random draws per piece of furniture before it is left out.
 PLACEMENT_TRIES = 300
+#: Opacity of a ``room_glass`` partition's panels (the ``glassware`` family's glass).
+GLASS_ALPHA = 0.18
+#: Width of the opaque posts at the doorway's jambs in ``room_glass``, metres; a post is
+#: 2 cm thicker than the panels, which end inside it.
+POST_WIDTH = 0.05
 #: Cameras of the default rig keep this far from walls and obstacle footprints, metres.
 CAMERA_CLEARANCE = 0.3
 #: Camera heights (metres) and pitch (degrees) of the default rig.
@@ -201,24 +214,36 @@ def _free_standing(rng: np.random.Generator, piece: Piece, region, placed: list
 
 
 def _partition(width: float, depth: float, at: float, door: float, door_at: float,
-               height: float) -> tuple[list[str], list[tuple[float, float, float, float]]]:
+               height: float, glass: bool = False
+               ) -> tuple[list[str], list[tuple[float, float, float, float]]]:
     """(geom lines, footprints) of the partition: wall-to-wall panels (each at most
     :data:`PANEL_LENGTH` long) with the doorway between ``door_at`` -/+ ``door`` / 2 along it.
-    It runs along y at x = ``at`` when the room is wider than deep, else along x at y = ``at``."""
+    It runs along y at x = ``at`` when the room is wider than deep, else along x at y = ``at``.
+    With ``glass`` the panels are glass and an opaque post stands at each jamb, inside the
+    panels' span (the doorway keeps its width)."""
     along_y = width >= depth
     span = depth if along_y else width
     t = PARTITION_THICKNESS
+
+    def box(name: str, centre: float, half: float, thickness: float, material: str) -> str:
+        pos = [at, centre, height / 2] if along_y else [centre, at, height / 2]
+        size = [thickness / 2, half, height / 2] if along_y else [half, thickness / 2, height / 2]
+        return (f'      <geom name="{name}" type="box" size="{floats(size)}" '
+                f'pos="{floats(pos)}" material="{material}"/>')
+
     geoms, boxes = [], []
     for label, (s0, s1) in zip("ab", [(-span / 2, door_at - door / 2),
                                       (door_at + door / 2, span / 2)]):
         panels = int(np.ceil((s1 - s0) / PANEL_LENGTH - 1e-9))
         edges = np.linspace(s0, s1, panels + 1)
         for k, (e0, e1) in enumerate(zip(edges[:-1], edges[1:])):
-            centre, half = 0.5 * (e0 + e1), 0.5 * (e1 - e0)
-            pos = [at, centre, height / 2] if along_y else [centre, at, height / 2]
-            size = [t / 2, half, height / 2] if along_y else [half, t / 2, height / 2]
-            geoms.append(f'      <geom name="partition_{label}_{k}" type="box" '
-                         f'size="{floats(size)}" pos="{floats(pos)}" material="partition"/>')
+            geoms.append(box(f"partition_{label}_{k}", 0.5 * (e0 + e1), 0.5 * (e1 - e0), t,
+                             "glass" if glass else "partition"))
+        if glass:  # the post at this side's jamb
+            jamb = s1 if label == "a" else s0
+            inward = -1.0 if label == "a" else 1.0
+            geoms.append(box(f"post_{label}", jamb + inward * POST_WIDTH / 2, POST_WIDTH / 2,
+                             t + 0.02, "furniture_frame"))
         lo, hi = (s0, s1)
         boxes.append((at - t / 2, lo, at + t / 2, hi) if along_y
                      else (lo, at - t / 2, hi, at + t / 2))
@@ -227,6 +252,17 @@ def _partition(width: float, depth: float, at: float, door: float, door_at: floa
 
 def room_scene(seed: int = 0) -> GeneratedScene:
     """The MJCF text and textures of room scene ``seed``."""
+    return _room(seed, glass=False)
+
+
+def room_glass_scene(seed: int = 0) -> GeneratedScene:
+    """Room scene ``seed`` with a glass partition (module docstring)."""
+    return _room(seed, glass=True)
+
+
+def _room(seed: int, glass: bool) -> GeneratedScene:
+    """Room ``seed``; with ``glass`` its partition is glass. The glass takes no random draw,
+    so both share every other choice."""
     rng = np.random.default_rng(seed)
     width, depth = rng.uniform(*ROOM_WIDTH), rng.uniform(*ROOM_DEPTH)
     height = rng.uniform(*ROOM_HEIGHT)
@@ -239,7 +275,7 @@ def room_scene(seed: int = 0) -> GeneratedScene:
     door = rng.uniform(*DOORWAY_WIDTH)
     door_at = rng.uniform(-span / 2 + 0.9, span / 2 - 0.9)
     partition_geoms, placed = _partition(width, depth, at, door, door_at,
-                                         rng.uniform(*PARTITION_HEIGHT))
+                                         rng.uniform(*PARTITION_HEIGHT), glass)
     bodies = ['    <body name="partition">', *partition_geoms, "    </body>"]
     obstacles = [line.split('"')[1] for line in partition_geoms]
     jamb_a, jamb_b = door_at - door / 2, door_at + door / 2
@@ -333,12 +369,16 @@ def room_scene(seed: int = 0) -> GeneratedScene:
         {"nerfbot_rig_kind": "inside",
          "nerfbot_obstacles": " ".join(obstacles),
          "nerfbot_objects": " ".join(obstacles)})
+    kind = "a glass partition (clear panels, opaque posts at the doorway)" if glass \
+        else "a partition"
     description = (f"A {width:.2f} m x {depth:.2f} m room, {height:.2f} m high, seen from inside:"
-                   f" a partition with a\n  doorway {door:.2f} m wide, shelves, tables, crates "
+                   f" {kind} with a\n  doorway {door:.2f} m wide, shelves, tables, crates "
                    "and barrels. Units are metres, z up; the floor\n  is at z = 0, the room "
                    "centred on the origin. Textures are the PNG files beside this file.")
+    family = "room_glass" if glass else "room"
     xml = _TEMPLATE.format(
-        header=header("room", seed, "sims/zoo/room.py", description), custom=custom,
+        header=header(family, seed, "sims/zoo/room.py", description), family=family,
+        custom=custom, glass=_GLASS.format(alpha=GLASS_ALPHA) if glass else "",
         extent=floats([max(width, depth)], 3), centre=floats([0, 0, height / 2], 3),
         ambient=floats([rng.uniform(0.2, 0.3)] * 3, 3), assets="\n".join(asset_xml),
         floor_repeat=floats([floor_repeat] * 2, 3), plaster=floats(plaster, 3),
@@ -349,8 +389,11 @@ def room_scene(seed: int = 0) -> GeneratedScene:
     return GeneratedScene(xml, assets)
 
 
+#: The glass material of ``room_glass`` (the ``glassware`` family's).
+_GLASS = '\n    <material name="glass" rgba="0.80 0.90 0.96 {alpha:.2f}" specular="1" shininess="1"/>'
+
 _TEMPLATE = """{header}
-<mujoco model="room">
+<mujoco model="{family}">
   <compiler angle="degree"/>
   <option timestep="0.002"/>
   <statistic extent="{extent}" center="{centre}"/>
@@ -379,7 +422,7 @@ _TEMPLATE = """{header}
               specular="0.05" shininess="0.1"/>
     <material name="partition" texture="partition" texuniform="true" specular="0.1"
               shininess="0.2"/>
-    <material name="furniture_frame" rgba="{frame} 1" specular="0.3" shininess="0.5"/>
+    <material name="furniture_frame" rgba="{frame} 1" specular="0.3" shininess="0.5"/>{glass}
 {assets}
   </asset>
 
