@@ -69,6 +69,7 @@ def test_eval_and_render_supersample_override(tiny_run, tmp_path, capsys):
         main(["render", str(tiny_run), "--path", "test", "--out", str(tmp_path / "x"),
               "--supersample", "0"])
     # the corner pattern: other colours, the same depth; its name is recorded
+    capsys.readouterr()
     assert main(["eval", str(tiny_run), "--json", "--supersample-pattern", "corners"]) == 0
     corners = json.loads(capsys.readouterr().out)
     assert corners["supersample_pattern"] == "corners" and two["supersample_pattern"] == "grid"
