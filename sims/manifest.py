@@ -65,6 +65,12 @@ def rendered_geoms(model: mujoco.MjModel, data: mujoco.MjData,
             if scene.geoms[i].objtype == geom_type and scene.geoms[i].objid >= 0]
 
 
+def transparent_geom_ids(drawn: list[mujoco.MjvGeom]) -> list[int]:
+    """Sorted ids of the ``drawn`` geoms (:func:`rendered_geoms`) whose effective alpha is
+    below 1."""
+    return sorted({int(g.objid) for g in drawn if g.rgba[3] < 1.0})
+
+
 def is_infinite_plane(model: mujoco.MjModel, gid: int) -> bool:
     """True for plane geoms with a zero half-size (rendered as infinite)."""
     return (model.geom_type[gid] == mujoco.mjtGeom.mjGEOM_PLANE
@@ -107,7 +113,7 @@ def scene_manifest(model: mujoco.MjModel, data: mujoco.MjData, name: str, source
         bounds = content_bounds(model, data, ids)
     except ValueError as err:
         raise ValueError(f"{source.removeprefix('builtin:')}: {err}") from None
-    transparent = sorted({int(g.objid) for g in drawn if g.rgba[3] < 1.0})
+    transparent = transparent_geom_ids(drawn)
     specular = any(g.specular > SPECULAR_THRESHOLD or g.reflectance > 0.0 for g in drawn)
     shiny = sorted({int(g.objid) for g in drawn
                     if g.specular > SPECULAR_THRESHOLD or g.reflectance > SHINY_REFLECTANCE})

@@ -9,6 +9,7 @@ base and anything but the floor are read from MuJoCo each physics step.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Callable, Optional
 
@@ -40,6 +41,11 @@ class DriveConfig:
             speed (plus 5 s).
         localise_every: control periods between pose estimates (poses in between are
             predicted from the commanded velocities).
+        gate_distance, gate_angle: an estimate farther than this from the predicted pose
+            (metres, or degrees of yaw) is rejected and the prediction kept, as a Kalman
+            filter's innovation gate would; 0 accepts every estimate.
+        gate_patience: after this many rejected estimates in a row the next one is accepted
+            whatever its distance (the prediction may be the wrong one).
     """
 
     speed: float = 0.4
@@ -49,19 +55,23 @@ class DriveConfig:
     yaw_gain: float = 2.0
     timeout_factor: float = 3.0
     localise_every: int = 10
+    gate_distance: float = 0.15
+    gate_angle: float = 10.0
+    gate_patience: int = 3
 
 
 @dataclass
 class DriveLog:
     """What happened: the true poses at each control update (K, 3), the estimates steered
-    by (K, 3), the geom names touched (each contact episode once), seconds simulated, and
-    whether the goal was reached."""
+    by (K, 3), the geom names touched (each contact episode once), seconds simulated,
+    whether the goal was reached, and how many estimates the gate rejected."""
 
     poses: np.ndarray
     estimates: np.ndarray
     contacts: list[str] = field(default_factory=list)
     seconds: float = 0.0
     reached: bool = False
+    rejected: int = 0
 
     @property
     def collided(self) -> bool:
@@ -103,12 +113,22 @@ def _lookahead_point(path: np.ndarray, xy: np.ndarray, lookahead: float,
     return point, nearest
 
 
+def within_gate(estimate: np.ndarray, predicted: np.ndarray, config: DriveConfig) -> bool:
+    """True when the estimate (x, y, yaw) is close enough to the predicted pose to be used
+    (:attr:`DriveConfig.gate_distance`, :attr:`DriveConfig.gate_angle`; 0 disables a test)."""
+    dxy = float(np.linalg.norm(np.asarray(estimate[:2]) - predicted[:2]))
+    dyaw = abs(math.degrees((estimate[2] - predicted[2] + math.pi) % (2 * math.pi) - math.pi))
+    return ((config.gate_distance <= 0 or dxy <= config.gate_distance)
+            and (config.gate_angle <= 0 or dyaw <= config.gate_angle))
+
+
 def drive(model: mujoco.MjModel, data: mujoco.MjData, ids: RobotIds, path: np.ndarray,
           config: DriveConfig = DriveConfig(), pose_source: Optional[PoseSource] = None,
           floor_geoms: tuple[int, ...] = ()) -> DriveLog:
     """Follow ``path`` (N, 2) world points from the robot's current pose to the path's last
-    point. ``pose_source`` None steers by the true pose; otherwise by its estimates, predicted
-    forward by the commanded velocity between them. Contacts with geoms other than
+    point. ``pose_source`` None steers by the true pose; otherwise by its estimates that pass
+    the gate (:func:`within_gate`), predicted forward by the commanded velocity between them.
+    Contacts with geoms other than
     ``floor_geoms`` are logged by name."""
     path = resample(np.asarray(path, float), FOLLOW_SPACING)
     goal = path[-1]
@@ -119,7 +139,7 @@ def drive(model: mujoco.MjModel, data: mujoco.MjData, ids: RobotIds, path: np.nd
     estimate = robot_pose(data, ids)
     command = np.zeros(3)
     poses, estimates, touched = [], [], []
-    progress, t, update = 0, 0.0, 0
+    progress, t, update, rejected, in_a_row = 0, 0.0, 0, 0, 0
     reached = False
     in_contact: set[int] = set()
     while t < timeout:
@@ -127,7 +147,11 @@ def drive(model: mujoco.MjModel, data: mujoco.MjData, ids: RobotIds, path: np.nd
         if pose_source is None:
             estimate = true
         elif update % config.localise_every == 0:
-            estimate = np.asarray(pose_source(model, data, estimate), float)
+            measured = np.asarray(pose_source(model, data, estimate), float)
+            if in_a_row >= config.gate_patience or within_gate(measured, estimate, config):
+                estimate, in_a_row = measured, 0
+            else:
+                rejected, in_a_row = rejected + 1, in_a_row + 1
         poses.append(true)
         estimates.append(estimate.copy())
         if np.linalg.norm(estimate[:2] - goal) <= config.goal_tolerance:
@@ -153,4 +177,4 @@ def drive(model: mujoco.MjModel, data: mujoco.MjData, ids: RobotIds, path: np.nd
         # predict the estimate forward by what was commanded (odometry)
         estimate = estimate + command * period
     command_velocity(data, ids, 0.0, 0.0, 0.0)
-    return DriveLog(np.asarray(poses), np.asarray(estimates), touched, t, reached)
+    return DriveLog(np.asarray(poses), np.asarray(estimates), touched, t, reached, rejected)

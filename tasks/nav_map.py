@@ -21,7 +21,7 @@ import numpy as np
 from scipy import ndimage
 
 from nerfbot.query.density import OccupancyVolume
-from sims.manifest import declared_obstacles
+from sims.manifest import declared_obstacles, rendered_geoms, transparent_geom_ids
 
 
 @dataclass(frozen=True)
@@ -121,7 +121,8 @@ def resample_onto(fmap: FloorMap, reference: FloorMap) -> np.ndarray:
     return out
 
 
-def map_agreement(fmap: FloorMap, truth: FloorMap, radius: float) -> dict:
+def map_agreement(fmap: FloorMap, truth: FloorMap, radius: float,
+                  transparent: FloorMap | None = None) -> dict:
     """How a map compares with the true one, on the true map's cells:
 
     - ``iou``: intersection over union of the blocked cells;
@@ -130,13 +131,21 @@ def map_agreement(fmap: FloorMap, truth: FloorMap, radius: float) -> dict:
     - ``standable_kept``: share of the cells where a body of ``radius`` (metres) truly stands
       that the map also lets it stand on (what planning can use);
     - ``standable_wrong``: share of the cells the map lets it stand on where it truly cannot
-      (what drives it into things)."""
+      (what drives it into things);
+    - with ``transparent`` (the true map of the transparent obstacles alone, on ``truth``'s
+      cells), ``transparent_blocked``: share of their cells the map blocks."""
     b, g = resample_onto(fmap, truth), truth.blocked
     fm = FloorMap(b, truth.origin, truth.cell).free_for(radius)
     ft = truth.free_for(radius)
     share = (lambda a, n: float(a.sum() / n.sum()) if n.any() else 0.0)
-    return {"iou": share(b & g, b | g), "phantom": share(b & ~g, ~g), "missed": share(~b & g, g),
-            "standable_kept": share(fm & ft, ft), "standable_wrong": share(fm & ~ft, fm)}
+    out = {"iou": share(b & g, b | g), "phantom": share(b & ~g, ~g), "missed": share(~b & g, g),
+           "standable_kept": share(fm & ft, ft), "standable_wrong": share(fm & ~ft, fm)}
+    if transparent is not None:
+        if transparent.shape != truth.shape:
+            raise ValueError(f"transparent map of shape {transparent.shape} is not on the true "
+                             f"map's cells {truth.shape}")
+        out["transparent_blocked"] = share(b & transparent.blocked, transparent.blocked)
+    return out
 
 
 def floor_map_from_volume(volume: OccupancyVolume, body: RobotBody,
@@ -157,7 +166,8 @@ def floor_map_from_volume(volume: OccupancyVolume, body: RobotBody,
 
 
 def floor_map_from_geometry(model: mujoco.MjModel, data: mujoco.MjData, geoms: list[str],
-                            area, cell: float, body: RobotBody, floor_z: float = 0.0) -> FloorMap:
+                            area, cell: float, body: RobotBody, floor_z: float = 0.0,
+                            walls: bool = True) -> FloorMap:
     """The true floor map: cells over ``area`` (xmin, ymin, xmax, ymax; outside it is wall)
     blocked where the footprint of a named geom that reaches into the body's height band
     reaches into the cell. Upright boxes (their footprint grown by half a cell along their own
@@ -170,6 +180,7 @@ def floor_map_from_geometry(model: mujoco.MjModel, data: mujoco.MjData, geoms: l
         geoms: names of the obstacle geoms.
         area: the free floor's extent, metres: cells outside it are blocked.
         cell: cell size, metres.
+        walls: False leaves the cells outside ``area`` free (the obstacles alone).
     """
     xmin, ymin, xmax, ymax = (float(v) for v in area)
     # one ring of cells beyond the area on every side: the walls
@@ -180,6 +191,8 @@ def floor_map_from_geometry(model: mujoco.MjModel, data: mujoco.MjData, geoms: l
     gy = origin[1] + cell * np.arange(ny)
     px, py = np.meshgrid(gx, gy, indexing="ij")
     blocked = (px < xmin) | (px > xmax) | (py < ymin) | (py > ymax)
+    if not walls:
+        blocked[:] = False
     lo_band, hi_band = floor_z + body.floor_clearance, floor_z + body.height
     for name in geoms:
         gid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, name)
@@ -234,8 +247,14 @@ def room_area(model: mujoco.MjModel) -> tuple[float, float, float, float]:
 
 
 def true_floor_map(model: mujoco.MjModel, data: mujoco.MjData, body: RobotBody,
-                   cell: float = 0.05) -> FloorMap:
+                   cell: float = 0.05, transparent_only: bool = False) -> FloorMap:
     """The floor map of a room scene's true geometry: its declared obstacle geoms
-    (``nerfbot_obstacles``) inside its walls (:func:`room_area`), floor at z = 0."""
+    (``nerfbot_obstacles``) inside its walls (:func:`room_area`), floor at z = 0; with
+    ``transparent_only``, only the declared obstacles MuJoCo draws see-through (glass),
+    without the walls (an empty map when there are none)."""
     names = list(declared_obstacles(model, data))
-    return floor_map_from_geometry(model, data, names, room_area(model), cell, body)
+    if not transparent_only:
+        return floor_map_from_geometry(model, data, names, room_area(model), cell, body)
+    clear = {model.geom(g).name for g in transparent_geom_ids(rendered_geoms(model, data))}
+    return floor_map_from_geometry(model, data, [n for n in names if n in clear],
+                                   room_area(model), cell, body, walls=False)

@@ -15,7 +15,7 @@ from nerfbot.query.density import collision_cost, density_at, occupancy_volume
 from sims.robot import (add_robot, command_velocity, robot_contacts, robot_ids, robot_pose,
                         set_robot_pose)
 from sims.scene import resolve_scene
-from tasks.nav_execute import DriveLog, drive
+from tasks.nav_execute import DriveConfig, DriveLog, drive, within_gate
 from tasks.nav_map import (FloorMap, RobotBody, floor_map_from_volume, map_agreement,
                            true_floor_map)
 from tasks.nav_planner import (PlanningError, astar, optimise_trajectory, path_length,
@@ -313,3 +313,87 @@ def test_estimate_errors_are_taken_where_the_estimates_were_made():
     assert errors["estimate_error_m_max"] == pytest.approx(0.05)
     assert errors["estimate_error_deg_median"] == pytest.approx(1.0)
     assert DriveLog(np.zeros((0, 3)), np.zeros((0, 3))).estimate_errors(every=2) == {}
+
+
+def test_map_agreement_counts_the_transparent_cells_blocked():
+    truth = np.zeros((20, 20), bool)
+    truth[:, 10] = True                            # a pane across the room
+    glass = FloorMap(truth.copy(), (0.0, 0.0), 0.1)
+    t = FloorMap(truth, (0.0, 0.0), 0.1)
+    half = truth.copy()
+    half[10:, 10] = False                          # a map that sees half of it
+    a = map_agreement(FloorMap(half, (0.0, 0.0), 0.1), t, 0.15, glass)
+    assert a["transparent_blocked"] == pytest.approx(0.5)
+    assert "transparent_blocked" not in map_agreement(t, t, 0.15)
+    with pytest.raises(ValueError, match="true map's cells"):
+        map_agreement(t, t, 0.15, FloorMap(truth[1:], (0.0, 0.0), 0.1))
+
+
+def test_room_glass_true_map_of_the_transparent_obstacles_is_its_panels():
+    model = mujoco.MjSpec.from_file(str(resolve_scene("room_glass:0"))).compile()
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    body = RobotBody()
+    everything = true_floor_map(model, data, body)
+    glass = true_floor_map(model, data, body, transparent_only=True)
+    assert glass.shape == everything.shape
+    assert glass.blocked.any() and not (glass.blocked & ~everything.blocked).any()
+    assert not glass.blocked[0].any() and not glass.blocked[:, -1].any()      # no walls
+    panel = tuple(glass.to_cell(data.geom_xpos[model.geom("partition_a_0").id][:2]))
+    assert glass.blocked[panel] and everything.blocked[panel]
+    adr = model.numeric_adr[model.numeric("nerfbot_passage").id]
+    doorway = tuple(glass.to_cell(model.numeric_data[adr:adr + 4].reshape(2, 2).mean(0)))
+    assert not glass.blocked[doorway] and not everything.blocked[doorway]
+    plain = mujoco.MjSpec.from_file(str(resolve_scene("room:0"))).compile()
+    plain_data = mujoco.MjData(plain)
+    mujoco.mj_forward(plain, plain_data)
+    assert not true_floor_map(plain, plain_data, body, transparent_only=True).blocked.any()
+
+
+def test_the_gate_rejects_a_distant_estimate_and_gives_way_after_its_patience():
+    cfg = DriveConfig(gate_distance=0.15, gate_angle=10.0, gate_patience=3)
+    predicted = np.array([1.0, 2.0, np.radians(179.0)])
+    assert within_gate(predicted + [0.1, 0.1, 0.0], predicted, cfg)
+    assert within_gate([1.0, 2.0, np.radians(-175.0)], predicted, cfg)          # 6 deg, wrapped
+    assert not within_gate(predicted + [0.2, 0.0, 0.0], predicted, cfg)
+    assert not within_gate(predicted + [0.0, 0.0, np.radians(15.0)], predicted, cfg)
+    assert within_gate(predicted + [5.0, 0.0, 3.0], predicted,
+                       DriveConfig(gate_distance=0.0, gate_angle=0.0))
+
+
+def test_a_drive_steered_by_estimates_ignores_one_wild_estimate(room_with_robot):
+    """A pose source that is exact but for one estimate 1 m off: with the gate the drive
+    rejects it and arrives without contact; without the gate the robot steers by it."""
+    model, data = room_with_robot
+    ids = robot_ids(model)
+    body = RobotBody()
+    fmap = true_floor_map(model, data, body)
+    free = np.argwhere(fmap.free_for(body.radius + 0.03))
+    rng = np.random.default_rng(5)
+    while True:
+        a, b = (fmap.to_world(free[rng.integers(len(free))]) for _ in range(2))
+        if np.linalg.norm(a - b) > 1.5:
+            break
+    path = shortcut(plan_grid_path(fmap, body, a, b, margin=0.03), fmap, body.radius + 0.03)
+
+    def run(config):
+        calls = []
+
+        def source(m, d, predicted):
+            calls.append(len(calls))
+            pose = robot_pose(d, ids)
+            return pose + [1.0, 0.0, 0.0] if len(calls) == 2 else pose
+
+        mujoco.mj_resetData(model, data)
+        set_robot_pose(data, ids, a[0], a[1], 0.0)
+        mujoco.mj_forward(model, data)
+        return drive(model, data, ids, path, config, source,
+                     floor_geoms=(model.geom("floor").id,))
+
+    gated = run(DriveConfig())
+    assert gated.rejected == 1 and gated.reached and not gated.contacts
+    assert np.linalg.norm(robot_pose(data, ids)[:2] - b) < 0.1
+    ungated = run(DriveConfig(gate_distance=0.0, gate_angle=0.0))
+    assert ungated.rejected == 0
+    second = DriveConfig().localise_every                 # the update of the wild estimate
+    assert ungated.estimates[second, 0] - gated.estimates[second, 0] == pytest.approx(1.0, abs=0.05)
