@@ -138,6 +138,11 @@ def drive(model: mujoco.MjModel, data: mujoco.MjData, ids: RobotIds, path: np.nd
     period = substeps * model.opt.timestep
     estimate = robot_pose(data, ids)
     command = np.zeros(3)
+    # the actuators clip commands to their control ranges: predict with what they apply
+    limited = model.actuator_ctrllimited[list(ids.actuators)].astype(bool)
+    ranges = model.actuator_ctrlrange[list(ids.actuators)]
+    low = np.where(limited, ranges[:, 0], -np.inf)
+    high = np.where(limited, ranges[:, 1], np.inf)
     poses, estimates, touched = [], [], []
     progress, t, update, rejected, in_a_row = 0, 0.0, 0, 0, 0
     reached = False
@@ -175,6 +180,6 @@ def drive(model: mujoco.MjModel, data: mujoco.MjData, ids: RobotIds, path: np.nd
         t += period
         update += 1
         # predict the estimate forward by what was commanded (odometry)
-        estimate = estimate + command * period
+        estimate = estimate + np.clip(command, low, high) * period
     command_velocity(data, ids, 0.0, 0.0, 0.0)
     return DriveLog(np.asarray(poses), np.asarray(estimates), touched, t, reached, rejected)

@@ -397,3 +397,29 @@ def test_a_drive_steered_by_estimates_ignores_one_wild_estimate(room_with_robot)
     assert ungated.rejected == 0
     second = DriveConfig().localise_every                 # the update of the wild estimate
     assert ungated.estimates[second, 0] - gated.estimates[second, 0] == pytest.approx(1.0, abs=0.05)
+
+
+def test_dead_reckoning_follows_the_base_through_a_fast_turn(room_with_robot):
+    """A pose source that returns the prediction alone (odometry): starting 180 degrees away
+    from the path's heading, the commanded yaw rate exceeds the actuator's range, and the
+    prediction, made with what the actuators apply, stays within 3 cm and 3 degrees."""
+    model, data = room_with_robot
+    ids = robot_ids(model)
+    body = RobotBody()
+    fmap = true_floor_map(model, data, body)
+    free = np.argwhere(fmap.free_for(body.radius + 0.03))
+    rng = np.random.default_rng(7)
+    while True:
+        a, b = (fmap.to_world(free[rng.integers(len(free))]) for _ in range(2))
+        if np.linalg.norm(a - b) > 1.5:
+            break
+    path = shortcut(plan_grid_path(fmap, body, a, b, margin=0.03), fmap, body.radius + 0.03)
+    heading = math.atan2(*(path[1] - path[0])[::-1])
+    mujoco.mj_resetData(model, data)
+    set_robot_pose(data, ids, a[0], a[1], heading + math.pi)
+    mujoco.mj_forward(model, data)
+    log = drive(model, data, ids, path, DriveConfig(), lambda m, d, predicted: predicted,
+                floor_geoms=(model.geom("floor").id,))
+    err = log.estimates - log.poses
+    assert np.linalg.norm(err[:, :2], axis=1).max() < 0.03
+    assert np.degrees(np.abs((err[:, 2] + np.pi) % (2 * np.pi) - np.pi)).max() < 3.0

@@ -5,10 +5,14 @@ field's floor map is made at every threshold and compared with the true map
 (``tasks.nav_map.map_agreement``: IoU, phantom and missed cells, standable floor kept and
 wrong, and the share of the transparent obstacles' cells blocked). The default threshold
 (:func:`nerfbot.query.density.default_obstacle_threshold`) and the depth sensor's map are
-reported beside. Writes OUT/sweep.json and OUT/sweep.png.
+reported beside. The field's density inside the declared obstacles is printed too (over
+grids of points 2 cm apart filling their boxes from 0.1 to 0.5 m above the floor, pooled
+over the transparent and over the opaque ones: the median, and the share of points at 5 /m
+or more, the glassware family's Dex-NeRF threshold): what threshold could find them. Writes OUT/sweep.json and
+OUT/sweep.png.
 
 usage: python docs/benchmarks/nav_threshold_sweep.py OUT [--scene room_glass] [--seed 1000]
-           [--scenes 1] [--thresholds 1,2,3,4,6,8,12]
+           [--scenes 1] [--thresholds 1,2,3,4,6,8,12] [--option KEY=VALUE ...]
 """
 import argparse
 import json
@@ -19,12 +23,16 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
 
-from nerfbot.query.density import default_obstacle_threshold  # noqa: E402
+from nerfbot.app.cli import parse_option  # noqa: E402
+from nerfbot.query.density import default_obstacle_threshold, density_at  # noqa: E402
 from nerfbot.train.runs import load_model  # noqa: E402
+from sims.manifest import declared_obstacles, rendered_geoms, transparent_geom_ids  # noqa: E402
 from tasks.nav_map import map_agreement, true_floor_map  # noqa: E402
-from tasks.navigate import (NavTaskConfig, World, ensure_capture, ensure_trained,  # noqa: E402
-                            field_floor_map, sensor_floor_map)
+from tasks.navigate import (NAV_FIELD_OPTIONS, NavTaskConfig, World,  # noqa: E402
+                            ensure_capture, ensure_trained, field_floor_map, sensor_floor_map)
 
 KEYS = ("iou", "phantom", "missed", "standable_kept", "standable_wrong", "transparent_blocked")
 
@@ -34,10 +42,33 @@ parser.add_argument("--scene", default="room_glass")
 parser.add_argument("--seed", type=int, default=1000)
 parser.add_argument("--scenes", type=int, default=1)
 parser.add_argument("--thresholds", default="1,2,3,4,6,8,12")
+parser.add_argument("--option", action="append", default=[], type=parse_option,
+                    help="field option of the training runs, as tasks.navigate takes it")
 args = parser.parse_args()
 thresholds = [float(t) for t in args.thresholds.split(",")]
-cfg = NavTaskConfig(scene=args.scene)
+cfg = NavTaskConfig(scene=args.scene, train_options={**NAV_FIELD_OPTIONS, **dict(args.option)})
 args.out.mkdir(parents=True, exist_ok=True)
+
+
+DEX_THRESHOLD = 5.0
+
+
+def obstacle_densities(model, world) -> list[dict]:
+    """Density inside each declared obstacle between 0.1 and 0.5 m above the floor, at a grid
+    of points 2 cm apart filling its world box: {geom, transparent, sigma (N,) 1/m}."""
+    clear = {world.model.geom(g).name
+             for g in transparent_geom_ids(rendered_geoms(world.model, world.data))}
+    out = []
+    for name, (lo, hi) in declared_obstacles(world.model, world.data).items():
+        lo, hi = np.maximum(lo, [-np.inf, -np.inf, 0.1]), np.minimum(hi, [np.inf, np.inf, 0.5])
+        if np.any(hi <= lo):
+            continue
+        axes = [np.linspace(a, b, max(int((b - a) / 0.02), 2)) for a, b in zip(lo, hi)]
+        pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+        sigma = density_at(model, torch.as_tensor(pts, dtype=torch.float32)).numpy()
+        out.append({"geom": name, "transparent": name in clear, "sigma": sigma})
+    return out
+
 
 rows = []
 for seed in range(args.seed, args.seed + args.scenes):
@@ -51,6 +82,17 @@ for seed in range(args.seed, args.seed + args.scenes):
         glass = glass if glass.blocked.any() else None
         radius = cfg.robot.radius + cfg.margin
         default = default_obstacle_threshold(model)
+        inside = obstacle_densities(model, world)
+        for kind, sel in (("transparent", True), ("opaque", False)):
+            picked = [o for o in inside if o["transparent"] == sel]
+            if picked:
+                sigma = np.concatenate([o["sigma"] for o in picked])
+                stats = {"median": float(np.median(sigma)),
+                         "share_at_dex": float((sigma >= DEX_THRESHOLD).mean())}
+                rows.append({"scene": name, "map": f"inside {kind}", **stats})
+                print(f"{name}: density inside the {len(picked)} {kind} obstacles: median "
+                      f"{stats['median']:.2f} /m, {stats['share_at_dex']:.1%} of the points at "
+                      f"{DEX_THRESHOLD:g} /m or more")
         for t in sorted(set(thresholds + [default])):
             fmap = field_floor_map(model, world, replace(cfg, threshold=t))
             rows.append({"scene": name, "map": "nerf", "threshold": t, "default": t == default,
@@ -64,6 +106,8 @@ for seed in range(args.seed, args.seed + args.scenes):
 print("| room | map | threshold (1/m) | " + " | ".join(KEYS) + " |")
 print("|---|---|---|" + "---|" * len(KEYS))
 for r in rows:
+    if r["map"].startswith("inside"):
+        continue
     t = "" if r["threshold"] is None else f"{r['threshold']:.1f}" + (" (default)" if r["default"] else "")
     print(f"| `{r['scene']}` | {r['map']} | {t} | "
           + " | ".join(f"{r[k]:.3f}" if k in r else "" for k in KEYS) + " |")
