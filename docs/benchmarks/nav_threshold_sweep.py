@@ -12,7 +12,7 @@ or more, the glassware family's Dex-NeRF threshold): what threshold could find t
 OUT/sweep.png.
 
 usage: python docs/benchmarks/nav_threshold_sweep.py OUT [--scene room_glass] [--seed 1000]
-           [--scenes 1] [--thresholds 1,2,3,4,6,8,12] [--option KEY=VALUE ...]
+           [--scenes 1] [--thresholds 1,2,3,4,6,8,12] [--option KEY=VALUE ...] [--headlight]
 """
 import argparse
 import json
@@ -44,9 +44,12 @@ parser.add_argument("--scenes", type=int, default=1)
 parser.add_argument("--thresholds", default="1,2,3,4,6,8,12")
 parser.add_argument("--option", action="append", default=[], type=parse_option,
                     help="field option of the training runs, as tasks.navigate takes it")
+parser.add_argument("--headlight", action="store_true",
+                    help="captures with MuJoCo's headlight, as tasks.navigate --headlight")
 args = parser.parse_args()
 thresholds = [float(t) for t in args.thresholds.split(",")]
-cfg = NavTaskConfig(scene=args.scene, train_options={**NAV_FIELD_OPTIONS, **dict(args.option)})
+cfg = NavTaskConfig(scene=args.scene, train_options={**NAV_FIELD_OPTIONS, **dict(args.option)},
+                    headlight=args.headlight)
 args.out.mkdir(parents=True, exist_ok=True)
 
 
