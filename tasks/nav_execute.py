@@ -128,8 +128,7 @@ def drive(model: mujoco.MjModel, data: mujoco.MjData, ids: RobotIds, path: np.nd
     """Follow ``path`` (N, 2) world points from the robot's current pose to the path's last
     point. ``pose_source`` None steers by the true pose; otherwise by its estimates that pass
     the gate (:func:`within_gate`), predicted forward by the commanded velocity between them.
-    Contacts with geoms other than
-    ``floor_geoms`` are logged by name."""
+    Contacts with geoms other than ``floor_geoms`` are logged by name."""
     path = resample(np.asarray(path, float), FOLLOW_SPACING)
     goal = path[-1]
     length = float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum())

@@ -25,9 +25,10 @@ For each of ``--scenes`` room seeds (``--seed`` on):
    :func:`tasks.nav_execute.within_gate`). Success: within 10 cm of the goal without any
    contact.
 
-Glass (``--scene room_glass``) barely shows in a field's density: a map made at a low
-``--threshold`` (Dex-NeRF's) blocks it, and the depth sensor's map does not (its pulses pass
-through). Map records carry the share of the transparent obstacles' cells blocked.
+Glass (``--scene room_glass``) is an obstacle the depth sensor's map misses (its pulses pass
+through); a field map counts faint density as obstacle at a low ``--threshold`` (Dex-NeRF's),
+as far as the field holds the glass at all (BENCHMARKS.md, section 9). Map records carry the
+share of the transparent obstacles' cells the map blocks.
 
 Outputs in ``--out``: ``log.json`` (every trial), ``summary.json`` and one top-down PNG per
 trial in ``trials/`` (map, planned and driven paths, contacts).
@@ -103,9 +104,6 @@ class NavTaskConfig:
     them with fog (BENCHMARKS.md, section 9)."""
     capture_test_views: int = 10
     capture_size: int = 128
-    headlight: bool = False
-    """Capture (and the robot's camera) with MuJoCo's headlight, whose diffuse and specular
-    light follow the camera as a light mounted on the robot would; off: static lighting."""
     train_steps: int = 2000
     method: str = "ngp"
     train_options: dict = field(default_factory=lambda: dict(NAV_FIELD_OPTIONS))
@@ -137,9 +135,7 @@ class NavTaskConfig:
 
 # ------------------------------------------------------------------------------ data and field
 def scene_folder(cfg: NavTaskConfig, seed: int) -> Path:
-    light = "-headlight" if cfg.headlight else ""
-    return (Path(cfg.cache) / f"{cfg.scene}-{seed}"
-            / f"{cfg.capture_size}px-{cfg.capture_views}v{light}")
+    return Path(cfg.cache) / f"{cfg.scene}-{seed}" / f"{cfg.capture_size}px-{cfg.capture_views}v"
 
 
 def ensure_capture(cfg: NavTaskConfig, seed: int) -> Path:
@@ -151,7 +147,7 @@ def ensure_capture(cfg: NavTaskConfig, seed: int) -> Path:
     rig = default_rig(name, count=cfg.capture_views, width=cfg.capture_size,
                       height=cfg.capture_size, seed=seed)
     capture(name, rig, make_test_rig(rig, cfg.capture_test_views), out, progress=cfg.progress,
-            sensor=DepthSensorModel(seed=seed), headlight=cfg.headlight)
+            sensor=DepthSensorModel(seed=seed))
     return out
 
 
@@ -183,7 +179,7 @@ class World:
         spec.worldbody.add_camera(name=CAPTURE_CAMERA, pos=[0, 0, 0], quat=[1, 0, 0, 0])
         add_robot(spec, cfg.robot)
         self.model = spec.compile()
-        set_lighting(self.model, cfg.headlight)
+        set_lighting(self.model)
         self.data = mujoco.MjData(self.model)
         mujoco.mj_forward(self.model, self.data)
         self.ids = robot_ids(self.model)
@@ -556,8 +552,6 @@ def main(argv=None) -> int:
     parser.add_argument("--train-steps", type=int, default=NavTaskConfig.train_steps)
     parser.add_argument("--capture-views", type=int, default=NavTaskConfig.capture_views)
     parser.add_argument("--capture-size", type=int, default=NavTaskConfig.capture_size)
-    parser.add_argument("--headlight", action="store_true",
-                        help="capture and drive with MuJoCo's headlight (light on the camera)")
     parser.add_argument("--option", action="append", default=[], type=parse_option,
                         metavar="KEY=VALUE",
                         help="field option of the training runs (repeatable), added to "
@@ -585,7 +579,6 @@ def main(argv=None) -> int:
     cfg = NavTaskConfig(scene=args.scene, scenes=args.scenes, trials=args.trials, seed=args.seed,
                         map=args.map, pose=args.pose, train_steps=args.train_steps,
                         capture_views=args.capture_views, capture_size=args.capture_size,
-                        headlight=args.headlight,
                         threshold=args.threshold, map_floor_clearance=args.floor_clearance,
                         out=args.out, device=args.device,
                         train_options={**NAV_FIELD_OPTIONS, **dict(args.option)},

@@ -8,11 +8,11 @@ wrong, and the share of the transparent obstacles' cells blocked). The default t
 reported beside. The field's density inside the declared obstacles is printed too (over
 grids of points 2 cm apart filling their boxes from 0.1 to 0.5 m above the floor, pooled
 over the transparent and over the opaque ones: the median, and the share of points at 5 /m
-or more, the glassware family's Dex-NeRF threshold): what threshold could find them. Writes OUT/sweep.json and
-OUT/sweep.png.
+or more, the glassware family's Dex-NeRF threshold): what threshold could find them.
+Writes OUT/sweep.json and OUT/sweep.png.
 
 usage: python docs/benchmarks/nav_threshold_sweep.py OUT [--scene room_glass] [--seed 1000]
-           [--scenes 1] [--thresholds 1,2,3,4,6,8,12] [--option KEY=VALUE ...] [--headlight]
+           [--scenes 1] [--thresholds 1,2,3,4,6,8,12] [--option KEY=VALUE ...]
 """
 import argparse
 import json
@@ -34,6 +34,7 @@ from tasks.nav_map import map_agreement, true_floor_map  # noqa: E402
 from tasks.navigate import (NAV_FIELD_OPTIONS, NavTaskConfig, World,  # noqa: E402
                             ensure_capture, ensure_trained, field_floor_map, sensor_floor_map)
 
+DEX_THRESHOLD = 5.0   # 1/m, the glassware family's calibrated threshold (BENCHMARKS, section 3)
 KEYS = ("iou", "phantom", "missed", "standable_kept", "standable_wrong", "transparent_blocked")
 
 parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -44,16 +45,10 @@ parser.add_argument("--scenes", type=int, default=1)
 parser.add_argument("--thresholds", default="1,2,3,4,6,8,12")
 parser.add_argument("--option", action="append", default=[], type=parse_option,
                     help="field option of the training runs, as tasks.navigate takes it")
-parser.add_argument("--headlight", action="store_true",
-                    help="captures with MuJoCo's headlight, as tasks.navigate --headlight")
 args = parser.parse_args()
 thresholds = [float(t) for t in args.thresholds.split(",")]
-cfg = NavTaskConfig(scene=args.scene, train_options={**NAV_FIELD_OPTIONS, **dict(args.option)},
-                    headlight=args.headlight)
+cfg = NavTaskConfig(scene=args.scene, train_options={**NAV_FIELD_OPTIONS, **dict(args.option)})
 args.out.mkdir(parents=True, exist_ok=True)
-
-
-DEX_THRESHOLD = 5.0
 
 
 def obstacle_densities(model, world) -> list[dict]:
