@@ -244,6 +244,15 @@ def map_grid(world: World, cfg: NavTaskConfig) -> tuple[np.ndarray, int]:
 CELL_TESTS = (-0.25, 0.25)
 
 
+def true_maps(world: World, cfg: NavTaskConfig) -> tuple[FloorMap, Optional[FloorMap]]:
+    """The room's true floor map, and that of its transparent obstacles alone (None when it
+    has none), on the same cells (:func:`tasks.nav_map.map_agreement`'s ``transparent``)."""
+    truth = true_floor_map(world.model, world.data, cfg.body, cfg.map_cell)
+    glass = true_floor_map(world.model, world.data, cfg.body, cfg.map_cell,
+                           transparent_only=True)
+    return truth, (glass if glass.blocked.any() else None)
+
+
 def field_floor_map(model, world: World, cfg: NavTaskConfig) -> FloorMap:
     """Floor map of the field's density on a grid over the room (floor to the base's top),
     each cell tested at :data:`CELL_TESTS`."""
@@ -407,9 +416,7 @@ def run_experiment(cfg: NavTaskConfig) -> dict:
             model, _ = load_model(ensure_trained(cfg, seed), cfg.device)
         world = World(name, cfg)
         try:
-            gt_map = true_floor_map(world.model, world.data, cfg.body, cfg.map_cell)
-            glass_map = true_floor_map(world.model, world.data, cfg.body, cfg.map_cell,
-                                       transparent_only=True)
+            gt_map, glass_map = true_maps(world, cfg)
             t0 = time.perf_counter()
             if cfg.map == "nerf":
                 fmap = field_floor_map(model, world, cfg)
@@ -418,8 +425,7 @@ def run_experiment(cfg: NavTaskConfig) -> dict:
             else:
                 fmap = gt_map
             map_seconds = time.perf_counter() - t0
-            agreement = map_agreement(fmap, gt_map, cfg.robot.radius + cfg.margin,
-                                      glass_map if glass_map.blocked.any() else None)
+            agreement = map_agreement(fmap, gt_map, cfg.robot.radius + cfg.margin, glass_map)
             maps.append({"scene": name, "map_seconds": map_seconds, **agreement})
             log.info("%s map of %s: IoU %.3f with the true map, phantom %.3f, missed %.3f, "
                      "standable kept %.3f, wrong %.3f", cfg.map, name, agreement["iou"],

@@ -361,28 +361,36 @@ def test_the_gate_rejects_a_distant_estimate_and_gives_way_after_its_patience():
                        DriveConfig(gate_distance=0.0, gate_angle=0.0))
 
 
+def _far_pair_path(model, data, seed: int):
+    """A start and a goal on the room's standable floor more than 1.5 m apart (seeded), and
+    the planned path between them on the true map."""
+    body = RobotBody()
+    fmap = true_floor_map(model, data, body)
+    free = np.argwhere(fmap.free_for(body.radius + 0.03))
+    rng = np.random.default_rng(seed)
+    while True:
+        a, b = (fmap.to_world(free[rng.integers(len(free))]) for _ in range(2))
+        if np.linalg.norm(a - b) > 1.5:
+            break
+    return a, b, shortcut(plan_grid_path(fmap, body, a, b, margin=0.03), fmap,
+                          body.radius + 0.03)
+
+
 def test_a_drive_steered_by_estimates_ignores_one_wild_estimate(room_with_robot):
     """A pose source that is exact but for one estimate 1 m off: with the gate the drive
     rejects it and arrives without contact; without the gate the robot steers by it."""
     model, data = room_with_robot
     ids = robot_ids(model)
-    body = RobotBody()
-    fmap = true_floor_map(model, data, body)
-    free = np.argwhere(fmap.free_for(body.radius + 0.03))
-    rng = np.random.default_rng(5)
-    while True:
-        a, b = (fmap.to_world(free[rng.integers(len(free))]) for _ in range(2))
-        if np.linalg.norm(a - b) > 1.5:
-            break
-    path = shortcut(plan_grid_path(fmap, body, a, b, margin=0.03), fmap, body.radius + 0.03)
+    a, b, path = _far_pair_path(model, data, seed=5)
 
     def run(config):
-        calls = []
+        calls = 0
 
         def source(m, d, predicted):
-            calls.append(len(calls))
+            nonlocal calls
+            calls += 1
             pose = robot_pose(d, ids)
-            return pose + [1.0, 0.0, 0.0] if len(calls) == 2 else pose
+            return pose + [1.0, 0.0, 0.0] if calls == 2 else pose
 
         mujoco.mj_resetData(model, data)
         set_robot_pose(data, ids, a[0], a[1], 0.0)
@@ -405,15 +413,7 @@ def test_dead_reckoning_follows_the_base_through_a_fast_turn(room_with_robot):
     prediction, made with what the actuators apply, stays within 3 cm and 3 degrees."""
     model, data = room_with_robot
     ids = robot_ids(model)
-    body = RobotBody()
-    fmap = true_floor_map(model, data, body)
-    free = np.argwhere(fmap.free_for(body.radius + 0.03))
-    rng = np.random.default_rng(7)
-    while True:
-        a, b = (fmap.to_world(free[rng.integers(len(free))]) for _ in range(2))
-        if np.linalg.norm(a - b) > 1.5:
-            break
-    path = shortcut(plan_grid_path(fmap, body, a, b, margin=0.03), fmap, body.radius + 0.03)
+    a, b, path = _far_pair_path(model, data, seed=7)
     heading = math.atan2(*(path[1] - path[0])[::-1])
     mujoco.mj_resetData(model, data)
     set_robot_pose(data, ids, a[0], a[1], heading + math.pi)

@@ -30,9 +30,10 @@ from nerfbot.app.cli import parse_option  # noqa: E402
 from nerfbot.query.density import default_obstacle_threshold, density_at  # noqa: E402
 from nerfbot.train.runs import load_model  # noqa: E402
 from sims.manifest import declared_obstacles, rendered_geoms, transparent_geom_ids  # noqa: E402
-from tasks.nav_map import map_agreement, true_floor_map  # noqa: E402
+from tasks.nav_map import map_agreement  # noqa: E402
 from tasks.navigate import (NAV_FIELD_OPTIONS, NavTaskConfig, World,  # noqa: E402
-                            ensure_capture, ensure_trained, field_floor_map, sensor_floor_map)
+                            ensure_capture, ensure_trained, field_floor_map, sensor_floor_map,
+                            true_maps)
 
 DEX_THRESHOLD = 5.0   # 1/m, the glassware family's calibrated threshold (BENCHMARKS, section 3)
 KEYS = ("iou", "phantom", "missed", "standable_kept", "standable_wrong", "transparent_blocked")
@@ -74,10 +75,7 @@ for seed in range(args.seed, args.seed + args.scenes):
     model, _ = load_model(ensure_trained(cfg, seed), cfg.device)
     world = World(name, cfg)
     try:
-        truth = true_floor_map(world.model, world.data, cfg.body, cfg.map_cell)
-        glass = true_floor_map(world.model, world.data, cfg.body, cfg.map_cell,
-                               transparent_only=True)
-        glass = glass if glass.blocked.any() else None
+        truth, glass = true_maps(world, cfg)
         radius = cfg.robot.radius + cfg.margin
         default = default_obstacle_threshold(model)
         inside = obstacle_densities(model, world)
