@@ -395,6 +395,30 @@ def test_density_noise_scales_training_densities_and_leaves_rendering_alone(tiny
         model("bad", density_noise=-1.0)
 
 
+def test_mean_centred_density_noise_keeps_the_mean_density(tiny_capture, tmp_path):
+    """``density_noise_centre="mean"`` multiplies training densities by exp(s N - s^2 / 2),
+    whose mean is 1 (the default factor exp(s N) has median 1 and mean exp(s^2 / 2))."""
+    ds = load_dataset(tiny_capture[0])
+
+    def model(folder, **options):
+        cfg = TrainConfig(method="ngp", max_steps=1, progress=False, options={**TINY_NGP, **options})
+        return Trainer(ds, tmp_path / folder, cfg).model
+
+    centred, clean = model("a", density_noise_centre="mean"), model("b", density_noise=0.0)
+    clean.load_state_dict(centred.state_dict())
+    rays = ds.cameras(ds.indices("train")[:2]).rays(0)
+    with torch.no_grad():
+        a = centred.render_rays(rays, torch.Generator().manual_seed(3))
+        b = clean.render_rays(rays, torch.Generator().manual_seed(3))
+    ratio = a.sigmas / b.sigmas
+    assert ratio.numel() > 5000
+    assert abs(float(torch.log(ratio).mean()) + 0.5) < 0.05
+    assert abs(float(torch.log(ratio).std()) - 1.0) < 0.05
+    assert abs(float(ratio.mean()) - 1.0) < 0.1
+    with pytest.raises(ValueError, match="density_noise_centre"):
+        model("bad", density_noise_centre="mode")
+
+
 def test_scale_gradient_keeps_values_and_scales_gradients():
     x = torch.tensor([1.0, 2.0, 3.0], requires_grad=True)
     y = scale_gradient(x, torch.tensor([0.0, 0.5, 1.0]))

@@ -83,6 +83,10 @@ class OccupancyModelConfig:
     field settles for veils and the expected depth falls behind them. Under the noise a veil's
     opacity, and so its pixel, flickers from step to step while a saturated surface's does not,
     so training prefers surfaces. Rendering never adds noise."""
+    density_noise_centre: str = "median"
+    """What the noise leaves unchanged: "median", factor exp(s N) (median 1, mean exp(s^2 / 2),
+    1.65 at s = 1); "mean", factor exp(s N - s^2 / 2) (mean 1). Under the median-one factor a
+    translucent field is trained to be denser on average than it renders without noise."""
     near_gradient_distance: float = 0.0
     """d0, metres: the gradients a training sample at distance t from its camera sends to the
     field are scaled by min(1, (t / d0)^2) (Philip and Deschaintre, "Floaters No More", 2023);
@@ -148,6 +152,9 @@ class OccupancyModelConfig:
                      "supersample_tolerance", "carving_weight"):
             if getattr(self, name) < 0:
                 raise ValueError(f"option {name}: must be >= 0, got {getattr(self, name)}")
+        if self.density_noise_centre not in ("median", "mean"):
+            raise ValueError(f"option density_noise_centre: must be 'median' or 'mean', got "
+                             f"{self.density_noise_centre!r}")
         if self.supersample_pattern not in ("grid", "corners"):
             raise ValueError(f"option supersample_pattern: must be 'grid' or 'corners', got "
                              f"{self.supersample_pattern!r}")
@@ -269,9 +276,12 @@ class OccupancyModel(Model):
                 _, trans = render_weights(sigma.detach().double(), ts, te, ray_idx, n)
                 self._choose_train_march(int((trans > TRAIN_STOP_TRANSMITTANCE).sum()),
                                          ray_idx.numel())
-        if self.config.density_noise > 0:
+        noise_std = self.config.density_noise
+        if noise_std > 0:
             noise = torch.randn(sigma.shape, generator=generator, device=sigma.device)
-            sigma = sigma * torch.exp(self.config.density_noise * noise)
+            if self.config.density_noise_centre == "mean":
+                noise = noise - 0.5 * noise_std
+            sigma = sigma * torch.exp(noise_std * noise)
         rgb = self.field.color(feat, d, gather_rows(cond, ray_idx))
         if self.config.near_gradient_distance > 0:
             scale = (0.5 * (ts + te) / self.config.near_gradient_distance).square().clamp_max(1.0)
