@@ -460,6 +460,28 @@ def test_update_cells_just_outside_face_aligned_bounds_stay_empty():
                            f"{sorted(set(torch.nonzero(bad)[:, 2].tolist()))}")
 
 
+def test_update_evaluates_only_the_cells_overlapping_the_bounds():
+    """A flat scene fills a small part of its enclosing cube: the update asks the field for one
+    point per cell that overlaps the bounds (a quarter of the cells here), each within its
+    cell, and none elsewhere."""
+    aabb = torch.tensor([[-1.0, -1.0, -0.25], [1.0, 1.0, 0.25]])
+    res = 16
+    grid = OccupancyGrid(aabb, resolution=res)
+    seen = []
+
+    def fn(x):
+        seen.append(x.clone())
+        return torch.ones(x.shape[:1])
+
+    grid.update(fn, step_size=0.01, generator=torch.Generator().manual_seed(0))
+    x = torch.cat(seen)
+    assert len(x) == int(grid.inside.sum()) == res ** 3 // 4
+    cells = torch.floor((x + 1.0) * res / 2.0).long()
+    assert torch.equal(grid.inside[cells[:, 0], cells[:, 1], cells[:, 2]],
+                       torch.ones(len(x), dtype=torch.bool))
+    assert len(torch.unique(cells, dim=0)) == len(x)  # one point in every such cell
+
+
 def test_update_never_prunes_to_an_empty_grid():
     """A field with no density anywhere keeps the previous occupancy (an empty grid would give
     no samples, hence no gradient, and training could never recover); a later update with

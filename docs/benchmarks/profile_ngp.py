@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import tempfile
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -129,13 +130,18 @@ def main() -> None:
     p.add_argument("--option", action="append", default=[], type=parse_option,
                    metavar="KEY=VALUE", help="ngp option (repeatable)")
     p.add_argument("--json", type=Path, default=None)
-    p.add_argument("--out", type=Path, default=Path("profile_run"),
-                   help="run folder of the warm-up training (new or empty)")
+    p.add_argument("--out", type=Path, default=None,
+                   help="run folder of the warm-up training (new or empty; default: a "
+                        "temporary folder, deleted at the end)")
     args = p.parse_args()
+    with tempfile.TemporaryDirectory(prefix="profile_ngp_") as scratch:
+        profile(args, args.out or Path(scratch) / "run")
 
+
+def profile(args, out: Path) -> None:
     ds = load_dataset(args.data)
     options = {"samples_per_batch": args.samples, **dict(args.option)}
-    trainer = Trainer(ds, args.out, TrainConfig(method="ngp", max_steps=args.warmup_steps,
+    trainer = Trainer(ds, out, TrainConfig(method="ngp", max_steps=args.warmup_steps,
                                                 seed=0, progress=False, options=options))
     trainer.train()
     model, bank, gen = trainer.model, trainer.bank, trainer.generator

@@ -175,6 +175,7 @@ class OccupancyGrid(nn.Module):
             scale = torch.ones(len(centers))
         self.register_buffer("inside", inside.reshape(resolution, resolution, resolution),
                              persistent=False)
+        self.register_buffer("_inside_cells", torch.nonzero(inside).squeeze(1), persistent=False)
         #: (G^3,) how much longer than the base step a marching step through each cell is
         self.register_buffer("step_scale", scale, persistent=False)
         self.occupied &= self.inside.to(torch.uint8)
@@ -235,9 +236,15 @@ class OccupancyGrid(nn.Module):
         Returns the fraction of the cells inside the bounds that are occupied.
         """
         pts = self.cell_points(torch.rand(self._cell_index.shape, generator=generator))
-        new = torch.cat([density_fn(pts[i:i + chunk]).float() for i in range(0, len(pts), chunk)])
         inside = self.inside.reshape(-1)
-        new = torch.where(inside, new, torch.zeros_like(new))
+        # flat scenes fill a small part of their enclosing cube: only cells overlapping the
+        # bounds are evaluated (the others hold no density)
+        cells = self._inside_cells
+        pts = pts[cells]
+        new = torch.zeros_like(self.density)
+        if len(cells):
+            new[cells] = torch.cat([density_fn(pts[i:i + chunk]).float()
+                                    for i in range(0, len(pts), chunk)])
         self.density.copy_(torch.maximum(self.density * self.decay, new))
         if prune:
             # density times the cell's step over the base step: what one step through the
