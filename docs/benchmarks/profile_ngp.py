@@ -142,7 +142,7 @@ def profile(args, out: Path) -> None:
     ds = load_dataset(args.data)
     options = {"samples_per_batch": args.samples, **dict(args.option)}
     trainer = Trainer(ds, out, TrainConfig(method="ngp", max_steps=args.warmup_steps,
-                                                seed=0, progress=False, options=options))
+                                           seed=0, progress=False, options=options))
     trainer.train()
     model, bank, gen = trainer.model, trainer.bank, trainer.generator
 

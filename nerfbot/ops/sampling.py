@@ -221,7 +221,8 @@ class OccupancyGrid(nn.Module):
     @torch.no_grad()
     def update(self, density_fn, step_size: float, generator: torch.Generator | None = None,
                chunk: int = 1 << 18, prune: bool = True) -> float:
-        """Re-sample every cell's density with ``density_fn(points (N, 3)) -> (N,)``.
+        """Re-sample the density of every cell that overlaps the bounds (the others stay at 0)
+        with ``density_fn(points (N, 3)) -> (N,)``, at one random point of each cell.
 
         A cell is occupied when its density times ``step_scale`` (the growth of the marching
         step through it under the contraction; 1 otherwise) exceeds ``min(mean of the same,
