@@ -245,19 +245,20 @@ def test_kplanes_shows_the_moving_objects_of_a_toy_rollout(tmp_path, toy_mjcf):
                            progress=False)
     ds = load_dataset(data)
     objects = {}
-    for method in ("kplanes", "ngp"):
+    # the static baseline is as good after 500 steps as after 1000 (11.9 dB on the objects)
+    for method, steps in (("kplanes", 1000), ("ngp", 500)):
         options = {"samples_per_batch": 8192, "grid_resolution": 32, "log2_hashmap_size": 15}
         if method == "kplanes":
             options["planes_time_res"] = 11  # a vertex per captured step
         trainer = Trainer(ds, tmp_path / method, TrainConfig(
-            method=method, max_steps=1000, seed=0, progress=False, options=options))
+            method=method, max_steps=steps, seed=0, progress=False, options=options))
         trainer.train()
         trainer.model.eval()
         objects[method] = {split: evaluate(trainer.model, ds, split, with_ssim=False)
                            ["psnr_objects"] for split in ("train", "test")}
     print(objects)
     # measured: kplanes 25.3 dB on the objects in training frames, 16.0 at held-out times
-    # (motion between steps is not modelled: the planes cross-fade)
+    # (motion between steps is not modelled: the planes cross-fade); ngp 11.9 on both
     assert objects["kplanes"]["train"] > 22.0
     assert objects["kplanes"]["train"] > objects["ngp"]["train"] + 5.0
     assert objects["kplanes"]["test"] > objects["ngp"]["test"] + 2.0

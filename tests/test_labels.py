@@ -212,13 +212,79 @@ def test_the_labels_locate_an_object_where_it_is(runs, tmp_path):
         locate_class(model, "unicorn")
 
 
+def test_questions_spread_every_click_over_the_first_half():
+    from nerfbot.train.labelling import LabelTrainConfig, question_schedule
+
+    config = LabelTrainConfig(steps=1000, clicks=20, click_rounds=8)
+    for extra in (1, 7, 8, 173):
+        schedule = question_schedule(config, extra)
+        assert sum(schedule.values()) == extra
+        assert len(schedule) == min(8, extra) and all(n >= 1 for n in schedule.values())
+        assert min(schedule) >= 1 and max(schedule) <= 500
+        assert max(schedule.values()) - min(schedule.values()) <= 1  # even rounds
+    assert question_schedule(config, 0) == {}
+    assert sum(question_schedule(LabelTrainConfig(steps=3, clicks=5), 9).values()) == 9
+    assert question_schedule(LabelTrainConfig(steps=1, clicks=5), 9) == {0: 9}  # before it
+    with pytest.raises(ValueError, match="click_choice"):
+        LabelTrainConfig(clicks=5, click_choice="best").validate()
+    with pytest.raises(ValueError, match="click_rounds"):
+        LabelTrainConfig(clicks=5, click_rounds=0).validate()
+
+
+def test_the_question_is_the_most_uncertain_free_pixels(runs):
+    from nerfbot.data.labels import label_maps
+    from nerfbot.data.pixels import PixelBank
+    from nerfbot.train.labelling import LabelTrainConfig, train_label_head, uncertain_pixels
+
+    data, root = runs
+    ds = load_dataset(data)
+    model, _ = load_model(root / "plain")
+    train_label_head(model, ds, LabelTrainConfig(steps=40))  # a head that predicts a few classes
+    classes = model.label_head.classes
+    train = ds.indices("train")
+    bank = PixelBank(ds, train, model.aabb.device)
+    answers = torch.from_numpy(np.concatenate(
+        [m.reshape(-1) for m in label_maps(ds, classes, train)]))
+    bank.load_labels(click_maps(label_maps(ds, classes, train), 1, seed=0), sparse=True)
+    answers[:100] = IGNORE  # pixels the user cannot answer are never asked for
+    free = torch.nonzero((answers >= 0) & (bank.labels < 0)).squeeze(1)
+    with torch.no_grad():
+        probs = render_labels(model.label_head, model.render_rays(bank.centre_rays(free)))
+    entropy = -(probs * probs.clamp_min(1e-12).log()).sum(-1)
+    predicted = probs.argmax(-1)
+    # every free pixel a candidate: the question takes each predicted class in turn, and from
+    # each class its most uncertain pixels
+    asked = uncertain_pixels(model, bank, answers, 50, len(bank), torch.Generator().manual_seed(0),
+                             chunk=1000)
+    assert len(asked) == 50 and len(set(asked.tolist())) == 50
+    assert set(asked.tolist()) <= set(free.tolist())
+    where = torch.searchsorted(free, asked)
+    sizes = torch.bincount(predicted, minlength=len(classes.names))
+    taken = torch.bincount(predicted[where], minlength=len(classes.names))
+    fair = taken.max()
+    assert bool(((taken == sizes) | (taken >= fair - 1)).all()), (taken, sizes)
+    assert int((sizes > 0).sum()) > 1  # the head, untrained, predicts several classes
+    for c in range(len(classes.names)):
+        mine = where[predicted[where] == c]
+        if len(mine):
+            torch.testing.assert_close(entropy[mine].sort().values,
+                                       entropy[predicted == c].topk(len(mine)).values.sort().values)
+    before = len(bank.clicks)
+    bank.add_clicks(asked, answers[asked])
+    assert len(bank.clicks) == before + 50 and torch.equal(bank.labels[asked], answers[asked])
+    # a second question never asks again; fewer candidates: a random subset of the free pixels
+    again = uncertain_pixels(model, bank, answers, 20, 300, torch.Generator().manual_seed(1))
+    assert len(again) == 20 and not set(again.tolist()) & set(asked.tolist())
+    assert bool((bank.labels[again] < 0).all() and (answers[again] >= 0).all())
+
+
 TOY_BOXES = """
     <geom name="red_box" type="box" size="0.12 0.12 0.12" pos="-0.2 0 0.12" material="red"/>
     <geom name="blue_box" type="box" size="0.1 0.1 0.15" pos="0.2 0.1 0.15" material="blue"/>
 """
 
 
-def test_twenty_clicks_per_class_come_near_full_labels_on_a_toy_scene(tmp_path, toy_mjcf):
+def test_twenty_asked_clicks_per_class_come_near_full_labels_on_a_toy_scene(tmp_path, toy_mjcf):
     from sims.capture import capture
     from sims.rigs import default_rig, make_test_rig
 
@@ -241,6 +307,8 @@ def test_twenty_clicks_per_class_come_near_full_labels_on_a_toy_scene(tmp_path, 
         assert model.label_head.classes.names == (BACKGROUND, "red_box", "blue_box", STRUCTURE)
         from nerfbot.eval.evaluation import evaluate
         scores[name] = evaluate(model, load_dataset(data), "test", with_ssim=False)["label_miou"]
-    # observed: full 0.79, 20 clicks 0.77 (5 clicks: 0.62)
+    print(scores)
+    # observed: full 0.79, 20 asked clicks (the default) 0.71; 20 random clicks 0.72, 5 asked
+    # 0.53, 5 random 0.61: at 150 head steps on four classes, asking gains nothing here
     assert scores["full"] > 0.7, scores
     assert scores["clicks"] > scores["full"] - 0.1, scores  # the stated margin: 0.1 mIoU

@@ -3,6 +3,7 @@ class, and what the label head costs.
 
 usage: python docs/benchmarks/labels.py WORK [--scenes tabletop,glassware,workspace:0]
                                        [--steps 1000] [--clicks 1,5,20]
+                                       [--click-choices uncertain,random]
 
 For each scene (128 px, the scene's default rig, 60 training and 10 test views):
 
@@ -11,13 +12,15 @@ For each scene (128 px, the scene's default rig, 60 training and 10 test views):
    trained jointly on full label maps): test PSNR of both (the head never changes the field,
    so they match) and the training time of the second over the first (the head's cost);
 3. ``nerfbot label`` on the run without labels: the head trained on the frozen field, from full
-   label maps and from 1, 5 and 20 clicks per class (iLabel's setting: labelled pixels drawn
-   at random over the training frames), 1000 head steps each;
+   label maps and from 1, 5 and 20 clicks per class on average (iLabel's setting), placed where
+   the head is least sure (``--click-choice uncertain``) and at random over each class's pixels
+   (``random``), 1000 head steps each;
 4. mean IoU on the test views (``nerfbot eval``), classes: background, each object of the
    manifest, structure.
 
 Writes WORK/labels.json, WORK/labels.png (one test view: image, true classes, joint head,
-20 and 5 clicks) and prints a markdown table. Runs one thing at a time.
+20 and 5 clicks of the first click choice, 20 of the second) and prints a markdown table. Runs
+one thing at a time.
 """
 
 from __future__ import annotations
@@ -53,7 +56,8 @@ def evaluate(run_dir: Path) -> dict:
     return json.loads(run(NERFBOT + ["eval", run_dir, "--json"]))
 
 
-def scene_row(work: Path, scene: str, steps: int, clicks: list[int]) -> dict:
+def scene_row(work: Path, scene: str, steps: int, clicks: list[int], choices: list[str]
+              ) -> dict:
     tag = scene.replace(":", "-")
     data = work / tag / "data"
     if not (data / "transforms.json").exists():
@@ -68,12 +72,13 @@ def scene_row(work: Path, scene: str, steps: int, clicks: list[int]) -> dict:
         row[name] = {"psnr": m["psnr"], "train_seconds": m["train_seconds"],
                      "label_miou": m.get("label_miou"), "label_iou": m.get("label_iou")}
     row["cost_ratio"] = row["joint"]["train_seconds"] / row["plain"]["train_seconds"]
-    for n in [None] + clicks:
-        name = "full" if n is None else f"clicks{n}"
+    for n, choice in [(None, None)] + [(n, c) for c in choices for n in clicks]:
+        name = "full" if n is None else f"clicks{n}-{choice}"
         out = work / tag / f"label-{name}"
         if not (out / "labels.json").exists():
             run(NERFBOT + ["label", work / tag / "plain", "--out", out, "--no-progress",
-                           "--overwrite"] + ([] if n is None else ["--clicks", n]))
+                           "--overwrite"]
+                + ([] if n is None else ["--clicks", n, "--click-choice", choice]))
         report = json.loads((out / "labels.json").read_text())
         m = evaluate(out)
         row[name] = {"label_miou": m["label_miou"], "label_iou": m["label_iou"],
@@ -81,15 +86,18 @@ def scene_row(work: Path, scene: str, steps: int, clicks: list[int]) -> dict:
     return row
 
 
-def sheet(work: Path, scene: str) -> np.ndarray:
-    """One test view: image | true classes | joint head | 20 clicks | 5 clicks."""
+def sheet(work: Path, scene: str, choices: list[str]) -> np.ndarray:
+    """One test view: image | true classes | joint head | 20 and 5 clicks of the first choice
+    | 20 clicks of the second."""
     tag = scene.replace(":", "-")
     ds = load_dataset(work / tag / "data")
     i = ds.indices("test")[0]
     cams = ds.cameras([i])
     images, names = [ds.images[i]], [scene]
-    for run_name, title in (("joint", "labels (joint)"), ("label-clicks20", "20 clicks"),
-                            ("label-clicks5", "5 clicks")):
+    panels = [("joint", "labels (joint)")]
+    panels += [(f"label-clicks{n}-{choices[0]}", f"{n} clicks, {choices[0]}") for n in (20, 5)]
+    panels += [(f"label-clicks20-{c}", f"20 clicks, {c}") for c in choices[1:]]
+    for run_name, title in panels:
         path = work / tag / run_name
         if not (path / "checkpoint.pt").exists():
             continue
@@ -104,16 +112,16 @@ def sheet(work: Path, scene: str) -> np.ndarray:
     return labelled_row(images, names)
 
 
-def table(rows: list[dict], clicks: list[int]) -> str:
+def table(rows: list[dict], clicks: list[int], choices: list[str]) -> str:
+    columns = [f"{n} clicks, {c}" for c in choices for n in clicks]
     head = ("| scene | PSNR without / with labels | training time with labels | mIoU joint "
-            "| mIoU on the frozen field: full | " + " | ".join(f"{n} clicks" for n in clicks)
-            + " |")
-    lines = [head, "|" + "---|" * (5 + len(clicks))]
+            "| mIoU on the frozen field: full | " + " | ".join(columns) + " |")
+    lines = [head, "|" + "---|" * (5 + len(columns))]
     for r in rows:
         cells = [f"`{r['scene']}`", f"{r['plain']['psnr']:.2f} / {r['joint']['psnr']:.2f} dB",
                  f"{r['cost_ratio']:.2f}x", f"{r['joint']['label_miou']:.3f}",
                  f"{r['full']['label_miou']:.3f}"]
-        cells += [f"{r[f'clicks{n}']['label_miou']:.3f}" for n in clicks]
+        cells += [f"{r[f'clicks{n}-{c}']['label_miou']:.3f}" for c in choices for n in clicks]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -124,14 +132,17 @@ def main() -> None:
     parser.add_argument("--scenes", default="tabletop,glassware,workspace:0")
     parser.add_argument("--steps", type=int, default=1000)
     parser.add_argument("--clicks", default="1,5,20")
+    parser.add_argument("--click-choices", default="uncertain,random")
     args = parser.parse_args()
     clicks = [int(c) for c in args.clicks.split(",")]
+    choices = [c for c in args.click_choices.split(",") if c]
     scenes = [s for s in args.scenes.split(",") if s]
     args.work.mkdir(parents=True, exist_ok=True)
-    rows = [scene_row(args.work, s, args.steps, clicks) for s in scenes]
+    rows = [scene_row(args.work, s, args.steps, clicks, choices) for s in scenes]
     (args.work / "labels.json").write_text(json.dumps(rows, indent=2))
-    save_image(args.work / "labels.png", np.concatenate([sheet(args.work, s) for s in scenes], 0))
-    print(table(rows, clicks))
+    save_image(args.work / "labels.png",
+               np.concatenate([sheet(args.work, s, choices) for s in scenes], 0))
+    print(table(rows, clicks, choices))
 
 
 if __name__ == "__main__":

@@ -478,7 +478,8 @@ def cmd_label(args) -> int:
 
     _refuse_source_run(Path(args.run), Path(args.out), "labelled")
     model, info, data, ds = _run_and_dataset(args)
-    config = LabelTrainConfig(steps=args.steps, clicks=args.clicks, seed=args.seed)
+    config = LabelTrainConfig(steps=args.steps, clicks=args.clicks,
+                              click_choice=args.click_choice, seed=args.seed)
     report = label_run(model, info, ds, data, Path(args.out), config, overwrite=args.overwrite,
                        progress=not args.no_progress)
     if ds.splits.get("test"):
@@ -1190,7 +1191,9 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
                         "structure")
     p.add_argument("--label-clicks", type=_positive_int, default=None, metavar="N",
                    help="labels from N labelled pixels per class over the training frames "
-                        "(iLabel's clicks) instead of full label maps; implies --labels")
+                        "(iLabel's clicks, drawn at random) instead of full label maps; implies "
+                        "--labels. `nerfbot label --clicks` on the finished run asks for them "
+                        "where the head is unsure, which scores higher")
     p.add_argument("--label-weight", type=_non_negative_float, default=0.04, metavar="W",
                    help="weight of the labels' cross-entropy (default 0.04, Semantic-NeRF's)")
     p.add_argument("--dynamic-rays", type=_fraction, default=0.5, metavar="F",
@@ -1272,8 +1275,13 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
     p.add_argument("--data", type=Path, default=None,
                    help="dataset (default: the one the run was trained on)")
     p.add_argument("--clicks", type=_positive_int, default=None, metavar="N",
-                   help="N labelled pixels per class over the training frames (iLabel) "
-                        "instead of full label maps")
+                   help="N labelled pixels per class on average over the training frames "
+                        "(iLabel) instead of full label maps")
+    p.add_argument("--click-choice", choices=("uncertain", "random"), default="uncertain",
+                   help="with --clicks: where they fall. uncertain (default, iLabel's active "
+                        "choice): one random click per class, the rest asked in rounds where "
+                        "the head is least sure, answered from the capture's segmentation as a "
+                        "user would; random: N per class, uniformly over each class's pixels")
     p.add_argument("--steps", type=_positive_int, default=1000, help="head steps (default 1000)")
     p.add_argument("--seed", type=_non_negative_int, default=0)
     p.add_argument("--device", type=_device, default="cpu")

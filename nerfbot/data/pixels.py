@@ -186,12 +186,34 @@ class PixelBank:
             if sparse else None
         return labelled
 
-    def sample_clicks(self, n: int, generator: torch.Generator, supersample: int = 1
+    def add_clicks(self, pixels: torch.Tensor, classes: torch.Tensor) -> None:
+        """Label more pixels of sparse labels (:meth:`load_labels` with ``sparse``): pixel
+        indices ``pixels`` (n,) get classes ``classes`` (n,) and join :attr:`clicks`."""
+        if self.clicks is None:
+            raise ValueError("add_clicks needs sparse labels (load_labels(..., sparse=True))")
+        pixels = pixels.to(self.device)
+        self.labels[pixels] = classes.to(self.device, self.labels.dtype)
+        self.clicks = torch.cat([self.clicks, pixels])
+
+    def centre_rays(self, pixels: torch.Tensor) -> Rays:
+        """Rays (n,) through the centres of pixels ``pixels`` (n,) (indices into the bank)."""
+        slot = torch.searchsorted(self.offsets[1:], pixels, right=True)
+        return self._pixel_rays(pixels, slot, None, 1)[0]
+
+    def sample_clicks(self, n: int, generator: torch.Generator, supersample: int = 1,
+                      balanced: bool = False
                       ) -> tuple[Rays, torch.Tensor, torch.Tensor, torch.Tensor]:
         """``n`` random draws (with repetition) among the labelled pixels of sparse labels
         (:meth:`load_labels`): rays (n * S * S,), colours (n, 3), frame slots (n,) and
-        classes (n,), as :meth:`sample` gives them."""
-        pick = torch.randint(len(self.clicks), (n,), generator=generator).to(self.device)
+        classes (n,), as :meth:`sample` gives them. ``balanced``: every class drawn equally
+        often, however many clicks it has."""
+        if balanced:
+            classes = self.labels[self.clicks]
+            weights = 1.0 / torch.bincount(classes)[classes].double()
+            pick = torch.multinomial(weights.cpu(), n, replacement=True,
+                                     generator=generator).to(self.device)
+        else:
+            pick = torch.randint(len(self.clicks), (n,), generator=generator).to(self.device)
         p = self.clicks[pick]
         slot = torch.searchsorted(self.offsets[1:], p, right=True)
         rays, colours = self._pixel_rays(p, slot, generator, supersample)
@@ -290,7 +312,8 @@ class PixelBank:
         rays, colours = self._pixel_rays(p, slot, generator, supersample, jitter)
         return rays, colours, slot
 
-    def _pixel_rays(self, p: torch.Tensor, slot: torch.Tensor, generator: torch.Generator,
+    def _pixel_rays(self, p: torch.Tensor, slot: torch.Tensor,
+                    generator: Optional[torch.Generator],
                     supersample: int, jitter: bool = False) -> tuple[Rays, torch.Tensor]:
         """Rays (n * S * S,) through pixels ``p`` (n,) of frame slots ``slot``, and their
         colours (n, 3) float32 in [0, 1] (see :meth:`sample`; S = 1 without ``jitter``: the

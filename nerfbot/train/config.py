@@ -58,7 +58,9 @@ class TrainConfig:
     """Weight of the labels' cross-entropy against the photometric MSE (Semantic-NeRF's 0.04)."""
     label_clicks: Optional[int] = None
     """iLabel's setting: train labels from this many labelled pixels per class over all the
-    training frames (:func:`nerfbot.data.labels.click_maps`) instead of full label maps."""
+    training frames, drawn at random (:func:`nerfbot.data.labels.click_maps`), instead of full
+    label maps. Clicks asked where the head is unsure need a head that already predicts
+    something: :func:`nerfbot.train.labelling.train_label_head` on the finished field."""
     label_rays: int = 1024
     """Pixels per step whose labels are trained: the first of the batch's random pixels with
     full label maps; with ``label_clicks``, pixels drawn from the clicks, which replace as
