@@ -10,10 +10,10 @@ head on their cross-entropy.
 With a few clicks per class, where they fall matters more than how many there are. iLabel
 (Zhi et al. 2021) asks the user for the next clicks where the head is least sure; the
 ``uncertain`` click choice does that with the capture's label maps answering for the user
-(:func:`uncertain_pixels` is the question, usable by an interactive tool as it is). Asked
-clicks gather on whatever is ambiguous, so the question takes each predicted class in turn and
-training draws each clicked class equally often; without both, the most uncertain pixels
-alone scored below random clicks on two scenes of four (BENCHMARKS.md, section 13).
+(:func:`uncertain_pixels` is the question, usable by an interactive tool as it is). The most
+uncertain pixels tend to lie in one large ambiguous region (a wall, a table) that one class
+answers, so the question takes each predicted class in turn and training draws each clicked
+class equally often.
 """
 
 from __future__ import annotations
