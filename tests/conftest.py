@@ -5,7 +5,9 @@ worker then computes with one thread: the tests' tensors are small, so two threa
 process gained little (with warm caches on a 2-core machine, the suite took 12:35 with 2
 threads in one process and 8:00 with 2 single-thread workers). Modules marked
 ``slow(seconds)`` go first, costliest first, so a long module does not start last and leave the
-other workers idle at the end.
+other workers idle at the end (``--no-loadscope-reorder`` in pyproject.toml keeps this order:
+xdist would otherwise hand out the modules with the most tests first). Each tutorial notebook
+has its own module, so that two of them can run side by side.
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ from nerfbot.data.conditioning import Conditioning, dataset_conditioning, frame_
 from nerfbot.ops.kinematics import JointChain
 from sims.joints import joint_info, rigid_parts
 
-pytestmark = pytest.mark.slow(85)  # rough single-core seconds (tests/conftest.py)
+pytestmark = pytest.mark.slow(110)  # rough single-core seconds (tests/conftest.py)
 
 # A static pedestal and a textured block on an arm that turns about the vertical axis: the
 # smallest scene with one moving rigid part (a hinge moves both its position and its faces'
@@ -171,9 +171,11 @@ def _train(data, method, steps, out):
 
 @pytest.fixture(scope="module")
 def toy_runs(toy, tmp_path_factory):
-    """articulated and a static ngp, 300 small steps each on the toy capture."""
+    """articulated after 300 small steps on the toy capture, and a static ngp after 150 (it
+    smears the block whatever its budget: 18.6 dB after 150 steps, 18.8 after 300)."""
     root = tmp_path_factory.mktemp("toy_runs")
-    return {m: (*_train(toy, m, 300, root / m), root / m) for m in ("articulated", "ngp")}
+    return {m: (*_train(toy, m, steps, root / m), root / m)
+            for m, steps in (("articulated", 300), ("ngp", 150))}
 
 
 def test_two_part_toy_renders_unseen_configurations(toy_runs):
@@ -182,7 +184,8 @@ def test_two_part_toy_renders_unseen_configurations(toy_runs):
     same frames smears the block over its positions."""
     art, static = toy_runs["articulated"][2], toy_runs["ngp"][2]
     # measured: 28.2 dB (articulated) vs 18.1 dB (static) at 32 x 32 after 300 steps (28.4 vs
-    # 17.9 dB with a 64^3 occupancy grid, which made the runs 1.5x longer)
+    # 17.9 dB with a 64^3 occupancy grid, which made the runs 1.5x longer); on a 2-core machine
+    # without AVX-512, 25.6 dB (articulated) vs 18.6 dB (static, 150 steps)
     assert art["psnr"] > 25.0
     assert art["psnr"] > static["psnr"] + 5.0
 

@@ -24,7 +24,7 @@ from nerfbot.query.meshing import (compare_meshes, default_density_threshold, fi
                                    surface_distance, visible_mask)
 from sims.geometry import capture_geometry, scene_meshes
 
-pytestmark = pytest.mark.slow(120)  # rough single-core seconds (tests/conftest.py)
+pytestmark = pytest.mark.slow(155)  # rough single-core seconds (tests/conftest.py)
 
 # Cheap ngp: a small hash table and small batches, so a step takes milliseconds.
 CHEAP = ["--option", "samples_per_batch=4096", "--option", "log2_hashmap_size=12"]

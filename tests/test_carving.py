@@ -14,7 +14,7 @@ from nerfbot.ops.cameras import Rays
 from nerfbot.query.density import default_obstacle_threshold, density_at
 from nerfbot.query.render import render_rays_chunked
 
-pytestmark = pytest.mark.slow(55)  # rough single-core seconds (tests/conftest.py)
+pytestmark = pytest.mark.slow(75)  # rough single-core seconds (tests/conftest.py)
 
 PLATE_HALF = torch.tensor([0.5, 0.01, 0.4])     # a 1 m x 2 cm x 0.8 m plate at the origin, metres
 PLATE_RGB = torch.tensor([0.1, 0.5, 0.5])

@@ -31,7 +31,7 @@ from nerfbot.train.checkpoints import (CHECKPOINT, FORMAT, VERSION, CheckpointEr
 from nerfbot.train.runs import load_model
 from nerfbot.train.trainer import TrainConfig, Trainer
 
-pytestmark = pytest.mark.slow(100)  # rough single-core seconds (tests/conftest.py)
+pytestmark = pytest.mark.slow(80)  # rough single-core seconds (tests/conftest.py)
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = {"samples_per_batch": 4096, "grid_update_every": 4}

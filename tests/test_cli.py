@@ -13,6 +13,8 @@ import torch
 from nerfbot.app.cli import main
 from nerfbot.data import load_dataset
 
+pytestmark = pytest.mark.slow(75)  # rough single-core seconds (tests/conftest.py)
+
 EVAL_KEYS = {"psnr", "ssim", "depth_mae_m", "render_ms_per_image", "train_seconds", "num_params",
              "method"}
 

@@ -20,7 +20,7 @@ from nerfbot.ops.cameras import look_at
 from nerfbot.sfm.dataset import dataset_input, images_input, poses_from_images
 from nerfbot.sfm.pipeline import SfmOptions
 
-pytestmark = pytest.mark.slow(40)
+pytestmark = pytest.mark.slow(35)
 
 
 def _random_rotation(rng) -> np.ndarray:

@@ -16,7 +16,7 @@ from nerfbot.ops.contraction import contract, disparity_distance, step_scale, un
 from nerfbot.ops.sampling import OccupancyGrid
 from nerfbot.train.trainer import TrainConfig, Trainer
 
-pytestmark = pytest.mark.slow(40)
+pytestmark = pytest.mark.slow(65)
 
 
 def _directions(n: int, g: torch.Generator) -> torch.Tensor:

@@ -13,7 +13,7 @@ from nerfbot.data import load_dataset
 from nerfbot.data.conditioning import Conditioning, dataset_conditioning, frame_conditions
 from nerfbot.fields.dnerf import DNeRFField, DNeRFFieldConfig
 
-pytestmark = pytest.mark.slow(200)  # rough single-core seconds (tests/conftest.py)
+pytestmark = pytest.mark.slow(240)  # rough single-core seconds (tests/conftest.py)
 
 AABB = [[-1.0, -1.0, 0.0], [1.0, 1.0, 1.0]]
 TIME = Conditioning("time", ("time",), ((0.0, 1.0),))
@@ -245,8 +245,9 @@ def test_kplanes_shows_the_moving_objects_of_a_toy_rollout(tmp_path, toy_mjcf):
                            progress=False)
     ds = load_dataset(data)
     objects = {}
-    # the static baseline is as good after 500 steps as after 1000 (11.9 dB on the objects)
-    for method, steps in (("kplanes", 1000), ("ngp", 500)):
+    # the static baseline scores 11.2, 11.6 and 11.9 dB on the objects after 200, 300 and 500
+    # steps: it averages them away whatever its budget
+    for method, steps in (("kplanes", 1000), ("ngp", 300)):
         options = {"samples_per_batch": 8192, "grid_resolution": 32, "log2_hashmap_size": 15}
         if method == "kplanes":
             options["planes_time_res"] = 11  # a vertex per captured step
@@ -254,11 +255,14 @@ def test_kplanes_shows_the_moving_objects_of_a_toy_rollout(tmp_path, toy_mjcf):
             method=method, max_steps=steps, seed=0, progress=False, options=options))
         trainer.train()
         trainer.model.eval()
-        objects[method] = {split: evaluate(trainer.model, ds, split, with_ssim=False)
-                           ["psnr_objects"] for split in ("train", "test")}
+        # one ray per pixel, as kplanes renders by default (ngp's 2 x 2 would quadruple its
+        # render time and change no conclusion here)
+        objects[method] = {split: evaluate(trainer.model, ds, split, with_ssim=False,
+                                           supersample=1)["psnr_objects"]
+                           for split in ("train", "test")}
     print(objects)
-    # measured: kplanes 25.3 dB on the objects in training frames, 16.0 at held-out times
-    # (motion between steps is not modelled: the planes cross-fade); ngp 11.9 on both
+    # measured: kplanes 25.0 dB on the objects in training frames, 15.8 at held-out times
+    # (motion between steps is not modelled: the planes cross-fade); ngp 11.6 on both
     assert objects["kplanes"]["train"] > 22.0
     assert objects["kplanes"]["train"] > objects["ngp"]["train"] + 5.0
     assert objects["kplanes"]["test"] > objects["ngp"]["test"] + 2.0

@@ -21,6 +21,8 @@ from nerfbot.query.geometry import (DepthQuery, density_mesh, point_cloud, tsdf_
                                     write_mesh, write_point_cloud)
 from nerfbot.query.meshing import compare_cloud, compare_meshes
 
+pytestmark = pytest.mark.slow(40)  # rough single-core seconds (tests/conftest.py)
+
 CENTRE = np.array([10.0, -5.0, 3.0])   # metres: far from the origin, as a scene in a big world
 RADIUS = 0.4
 RED = (0.9, 0.1, 0.1)

@@ -28,7 +28,7 @@ from nerfbot.query.render import render_image
 from nerfbot.train.runs import load_model
 from nerfbot.train.trainer import TrainConfig, Trainer
 
-pytestmark = pytest.mark.slow(80)  # rough single-core seconds (tests/conftest.py)
+pytestmark = pytest.mark.slow(60)  # rough single-core seconds (tests/conftest.py)
 
 AABB = [[-1.0, -0.8, -0.5], [1.0, 0.8, 0.7]]
 

@@ -22,7 +22,7 @@ from nerfbot.query.export import label_palette
 from nerfbot.query.semantic import locate_class
 from nerfbot.train.runs import load_model
 
-pytestmark = pytest.mark.slow(150)
+pytestmark = pytest.mark.slow(265)
 
 MANIFEST = {"geoms": {"0": "floor", "1": "box_a", "2": "leg", "3": "box_b"},
             "objects": ["box_a", "box_b"]}

@@ -19,7 +19,7 @@ from nerfbot.query.localise import (InerfConfig, WideConfig, _gaussian_blur, _hy
                                     pose_error)
 from nerfbot.train.trainer import TrainConfig, Trainer
 
-pytestmark = pytest.mark.slow(70)
+pytestmark = pytest.mark.slow(80)
 
 
 def _twist_matrix(xi: torch.Tensor) -> torch.Tensor:

@@ -18,7 +18,7 @@ import pytest
 from nerfbot.app.cli import main
 from nerfbot.data.outputs import MARKER, check_output_folder, folder_kind, read_marker
 
-pytestmark = pytest.mark.slow(75)  # rough single-core seconds (tests/conftest.py)
+pytestmark = pytest.mark.slow(20)  # rough single-core seconds (tests/conftest.py)
 
 TINY = ["--no-progress", "--option", "samples_per_batch=4096"]
 #: A capture small enough to render in a second.

@@ -25,7 +25,7 @@ from nerfbot.ops.sampling import ray_aabb
 from nerfbot.train.runs import load_model
 from nerfbot.train.trainer import TrainConfig, Trainer
 
-pytestmark = pytest.mark.slow(35)  # rough single-core seconds (tests/conftest.py)
+pytestmark = pytest.mark.slow(30)  # rough single-core seconds (tests/conftest.py)
 
 AABB = [[-0.6, -0.4, 0.0], [0.6, 0.4, 0.9]]
 TINY_OPTIONS = {"samples_per_batch": 8192, "grid_update_every": 8}

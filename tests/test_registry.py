@@ -31,7 +31,7 @@ from nerfbot.query.render import render_image
 from nerfbot.train.runs import load_model
 from nerfbot.train.trainer import TrainConfig, Trainer
 
-pytestmark = pytest.mark.slow(30)  # rough single-core seconds (tests/conftest.py)
+pytestmark = pytest.mark.slow(70)  # rough single-core seconds (tests/conftest.py)
 
 ROOT = Path(__file__).resolve().parents[1]
 AABB = [[-0.5, -0.4, 0.0], [0.5, 0.4, 0.6]]

@@ -14,7 +14,7 @@ from nerfbot.data import load_dataset
 from nerfbot.train.scalars import COLUMNS, SCALARS, read_scalars, step_row, write_scalars
 from nerfbot.train.trainer import TrainConfig, Trainer
 
-pytestmark = pytest.mark.slow(40)
+pytestmark = pytest.mark.slow(5)
 
 TINY = {"samples_per_batch": 4096, "grid_update_every": 4}
 

@@ -35,6 +35,8 @@ from nerfbot.ops.rendering import EMPTY_OPACITY, composite, render_weights
 from nerfbot.ops.sampling import (OccupancyGrid, march_reference, pdf_samples, ray_aabb,
                                   stratified_samples)
 
+pytestmark = pytest.mark.slow(30)  # rough single-core seconds (tests/conftest.py)
+
 INF = float("inf")
 F16, BF16, F32, F64 = torch.float16, torch.bfloat16, torch.float32, torch.float64
 DTYPES = [F16, BF16, F32, F64]

@@ -14,7 +14,7 @@ from nerfbot.train.checkpoints import CHECKPOINT
 from nerfbot.train.runs import load_model
 from nerfbot.train.trainer import TrainConfig, Trainer
 
-pytestmark = pytest.mark.slow(55)  # rough single-core seconds (tests/conftest.py)
+pytestmark = pytest.mark.slow(85)  # rough single-core seconds (tests/conftest.py)
 
 # Small batches keep a step cheap on 32x32 images; the quality test trains a fixed step budget.
 TINY_NGP = {"samples_per_batch": 8192, "grid_update_every": 8}

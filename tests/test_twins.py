@@ -780,7 +780,7 @@ def _train_and_test(ds, out, method: str) -> float:
     return evaluate(trainer.model.eval(), ds, "test", with_ssim=False, downscale=2)["psnr"]
 
 
-@pytest.mark.slow(50)  # rough single-core seconds of this module, mostly these (tests/conftest.py)
+@pytest.mark.slow(170)  # rough single-core seconds of this module, mostly these (tests/conftest.py)
 @pytest.mark.parametrize("method", list(TRAININGS))
 def test_training_with_the_twins_forced_matches_the_kernels(method, tiny_capture, tmp_path,
                                                             monkeypatch):

@@ -24,6 +24,8 @@ from nerfbot.query.render import render_image
 from nerfbot.train.runs import load_model
 from sims.rigs import read_pose_file
 
+pytestmark = pytest.mark.slow(95)  # rough single-core seconds (tests/conftest.py)
+
 #: Screenshots of the browser test are kept here, to be looked at.
 ARTIFACTS = Path(os.environ.get("NERFBOT_TEST_ARTIFACTS",
                                 Path(__file__).resolve().parents[1] / ".test-artifacts"))

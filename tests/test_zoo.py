@@ -27,7 +27,7 @@ from sims.zoo.room import room_glass_scene, room_scene
 from sims.zoo.workspace import workspace_scene
 from sims.zoo.yard import yard_scene
 
-pytestmark = pytest.mark.slow(25)
+pytestmark = pytest.mark.slow(15)
 
 FAMILIES = {"workspace": workspace_scene, "room": room_scene, "room_glass": room_glass_scene,
             "bins": bins_scene, "yard": yard_scene}
