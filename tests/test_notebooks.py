@@ -5,13 +5,18 @@ from __future__ import annotations
 
 import nbformat
 import pytest
-from notebook_run import (ARTICULATED, EXPORTS, GLASS, NAVIGATION, POSES, QUICKSTART, VARIANTS,
-                          stored_clean)
+from notebook_run import (ARTICULATED, EXPORTS, GLASS, NAVIGATION, NOTEBOOKS, POSES, QUICKSTART,
+                          VARIANTS, stored_clean)
 
 
-@pytest.mark.parametrize("path", [QUICKSTART, GLASS, ARTICULATED, VARIANTS, NAVIGATION, POSES,
-                                  EXPORTS],
-                         ids=lambda p: p.stem)
+def test_every_notebook_is_executed_by_a_module():
+    """Each notebook in notebooks/ is one of tests/notebook_run.py's paths, which the
+    test_notebook_* modules execute: a new tutorial needs its constant and its module."""
+    assert sorted(NOTEBOOKS.glob("*.ipynb")) == sorted(
+        [QUICKSTART, GLASS, ARTICULATED, VARIANTS, NAVIGATION, POSES, EXPORTS])
+
+
+@pytest.mark.parametrize("path", sorted(NOTEBOOKS.glob("*.ipynb")), ids=lambda p: p.stem)
 def test_stored_without_outputs(path):
     nb = nbformat.read(path, as_version=4)
     nbformat.validate(nb)
