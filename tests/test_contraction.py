@@ -130,8 +130,10 @@ def test_contraction_models_content_beyond_the_bounds(tiny_capture, tmp_path, sh
                                    "contraction": contraction})
         trainer = Trainer(ds, tmp_path / f"run_{contraction}", cfg)
         trainer.train()
-        scores[contraction] = evaluate(trainer.model, full, "test", with_ssim=False)
+        scores[contraction] = evaluate(trainer.model, full, "test", with_ssim=False,
+                                       supersample=1)
     box, contracted = scores[False], scores[True]
+    # observed, one ray per pixel: box 16.9 dB, contracted 20.7 dB
     assert contracted["psnr"] >= 19.0, scores
     assert contracted["psnr"] >= box["psnr"] + 1.0, scores
 

@@ -247,7 +247,7 @@ def test_kplanes_shows_the_moving_objects_of_a_toy_rollout(tmp_path, toy_mjcf):
     objects = {}
     # the static baseline averages the objects away whatever its budget: 11.2 and 11.9 dB on
     # them after 200 and 500 steps (11.6 after 300, rendered with one ray per pixel)
-    for method, steps in (("kplanes", 1000), ("ngp", 300)):
+    for method, steps in (("kplanes", 1000), ("ngp", 200)):
         options = {"samples_per_batch": 8192, "grid_resolution": 32, "log2_hashmap_size": 15}
         if method == "kplanes":
             options["planes_time_res"] = 11  # a vertex per captured step
@@ -262,7 +262,7 @@ def test_kplanes_shows_the_moving_objects_of_a_toy_rollout(tmp_path, toy_mjcf):
                            for split in ("train", "test")}
     print(objects)
     # measured: kplanes 25.0 dB on the objects in training frames, 15.8 at held-out times
-    # (motion between steps is not modelled: the planes cross-fade); ngp 11.6 on both
+    # (motion between steps is not modelled: the planes cross-fade); ngp 11.2 and 11.3
     assert objects["kplanes"]["train"] > 22.0
     assert objects["kplanes"]["train"] > objects["ngp"]["train"] + 5.0
     assert objects["kplanes"]["test"] > objects["ngp"]["test"] + 2.0
