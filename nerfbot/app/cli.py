@@ -13,6 +13,8 @@ import math
 import sys
 from pathlib import Path
 
+from nerfbot.app import pixelnerf_cli
+
 log = logging.getLogger("nerfbot")
 
 #: Exit codes: 0 success, 1 a failure inside nerfbot (a bug, or a run that diverged), 2 bad
@@ -425,17 +427,41 @@ def _float_list(text: str) -> list[float]:
     return values
 
 
+def _condition_pixelnerf(model, ds, sources, run: Path) -> None:
+    """Condition a pixelNeRF run on the frames ``sources`` of ``ds`` (the scene it renders);
+    UsageError for ``--sources`` with any other run, or a pixelNeRF run without them."""
+    from nerfbot.models.pixelnerf import PixelNeRFModel
+    from nerfbot.train.pixelnerf import condition_on
+
+    if not isinstance(model, PixelNeRFModel):
+        if sources:
+            raise UsageError(f"--sources: {run} is not a pixelNeRF run (its scene is its own)")
+        return
+    if ds is None or not sources:
+        raise UsageError(f"{run} is a pixelNeRF run: give the scene (--data) and the frames it "
+                         "renders the scene from (--sources I,J,...)")
+    try:
+        condition_on(model, ds, sources)
+    except ValueError as err:
+        raise UsageError(f"--sources: {one_line(err)}") from None
+
+
 def _run_and_dataset(args):
     """(model, checkpoint info, dataset folder, dataset) of ``args.run`` evaluated on
-    ``args.data`` (default: the dataset the run was trained on)."""
+    ``args.data`` (default: the dataset the run was trained on); a pixelNeRF run is
+    conditioned on the ``args.sources`` frames of ``args.data``."""
     from nerfbot.data.run_dataset import resolve_run_dataset
     from nerfbot.train.runs import load_model
 
     run = Path(args.run)
     model, info = load_model(run, args.device)
     if args.data:
-        return model, info, Path(args.data), _load_dataset(args.data)
-    data, ds = resolve_run_dataset(run, info["spec"].get("dataset"))
+        data, ds = Path(args.data), _load_dataset(args.data)
+    elif info["spec"]["method"] == "pixelnerf":
+        data, ds = None, None
+    else:
+        data, ds = resolve_run_dataset(run, info["spec"].get("dataset"))
+    _condition_pixelnerf(model, ds, getattr(args, "sources", None), run)
     return model, info, data, ds
 
 
@@ -666,6 +692,8 @@ def _render_dataset(args, run: Path, info, needed: bool):
 
     if args.data:
         return _load_dataset(args.data)
+    if info["spec"]["method"] == "pixelnerf":
+        return None  # trained across scenes: the scene is --data
     try:
         return resolve_run_dataset(run, info["spec"].get("dataset"))[1]
     except FileNotFoundError as err:
@@ -768,8 +796,10 @@ def cmd_render(args) -> int:
         raise UsageError(f"--poses and --path {args.path}: give one camera path")
     mode, threshold, source = _render_depth_query(args, run)
     model, info = load_model(run, args.device)
-    ds = _render_dataset(args, run, info,
-                         needed=args.path != "orbit" and not args.sweep and not args.poses)
+    pixelnerf = info["spec"]["method"] == "pixelnerf"
+    ds = _render_dataset(args, run, info, needed=not pixelnerf and args.path != "orbit"
+                         and not args.sweep and not args.poses)
+    _condition_pixelnerf(model, ds, args.sources, run)
     cams, conds = _render_plan(args, model, info, ds)
     thresholds = [threshold] if mode == "threshold" else []
     labels = model.label_head is not None
@@ -995,6 +1025,17 @@ def _str_list(text: str) -> list[str]:
     values = [v.strip() for v in text.split(",") if v.strip()]
     if not values:
         raise argparse.ArgumentTypeError("expected a comma-separated list")
+    return values
+
+
+def _frame_list(text: str) -> list[int]:
+    """``I,J,...``: frame indices (non-negative integers)."""
+    try:
+        values = [int(v) for v in _str_list(text)]
+    except ValueError:
+        values = []
+    if not values or min(values) < 0:
+        raise argparse.ArgumentTypeError(f"expected comma-separated frame indices, got {text!r}")
     return values
 
 
@@ -1256,6 +1297,8 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
                    help="density thresholds of the sweep, 1/m (default 0.5 ... 1000)")
     p.add_argument("--plot", type=Path, default=None,
                    help="with --depth-sweep: write the sweep as a PNG plot here")
+    p.add_argument("--sources", type=_frame_list, default=None, metavar="I,J,...",
+                   help="a pixelNeRF run: the frames of --data it renders the scene from")
     p.add_argument("--device", type=_device, default="cpu")
     p.set_defaults(func=cmd_eval)
 
@@ -1372,6 +1415,8 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
     p.add_argument("--threshold", type=float, default=None, metavar="M",
                    help="density threshold of --depth-mode threshold (1/m, Dex-NeRF)")
     p.add_argument("--data", type=Path, default=None)
+    p.add_argument("--sources", type=_frame_list, default=None, metavar="I,J,...",
+                   help="a pixelNeRF run: the frames of --data it renders the scene from")
     p.add_argument("--device", type=_device, default="cpu")
     p.add_argument("--no-progress", action="store_true")
     cond = p.add_argument_group("dynamic and articulated runs")
@@ -1562,6 +1607,8 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
                    help="keep each point's checkpoint.pt in OUT/runs (default: deleted)")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=cmd_bench)
+
+    pixelnerf_cli.add_parser(sub, _device)
     return parser
 
 

@@ -17,6 +17,7 @@ from nerfbot.data.labels import LabelClasses, label_classes
 from nerfbot.methods import build_model
 from nerfbot.models.base import Model, resize_like_state_dict
 from nerfbot.models.labels import attach_label_head
+from nerfbot.train import pixelnerf
 from nerfbot.train.checkpoints import (CHECKPOINT, CheckpointError,
                                        load_checkpoint, plain)
 from nerfbot.train.config import TrainConfig
@@ -44,6 +45,8 @@ def model_spec(config: TrainConfig, dataset: Dataset) -> dict:
 
 def build_from_spec(spec: dict, device="cpu") -> Model:
     """The model of a run's spec, with its label head when the run was trained with labels."""
+    if spec["method"] == pixelnerf.METHOD:  # trained across scenes: not a registry method
+        return pixelnerf.model_from_spec(spec).to(device)
     model = build_model(spec["method"], spec["aabb"], spec["background"], spec["options"],
                         spec["seed"], Conditioning.from_dict(spec.get("conditioning")))
     if spec.get("labels"):
