@@ -101,8 +101,7 @@ def view_run(tiny_capture, tmp_path_factory):
     """A tabletop ngp run trained long enough to show sky, table and objects."""
     out = tmp_path_factory.mktemp("view") / "run"
     assert main(["train", "--data", str(tiny_capture[0]), "--method", "ngp", "--max-steps",
-                 "200", "--out", str(out), "--no-progress",
-                 "--option", "samples_per_batch=32768"]) == 0
+                 "200", "--out", str(out), "--no-progress"]) == 0
     return out, tiny_capture[0]
 
 

@@ -40,7 +40,8 @@ class PixelTrainConfig:
         steps: training steps (the budget, with ``max_seconds``).
         max_seconds: stop after this many seconds of training (None: steps only).
         sources: (fewest, most) source views per step, drawn uniformly.
-        lr: Adam learning rate, decayed exponentially to ``lr * lr_final_factor``.
+        lr: Adam learning rate, decayed exponentially to ``lr * lr_final_factor`` over the
+            budget (steps or seconds, whichever runs out first).
         lr_final_factor: see ``lr``.
         seed: seeds the initialisation and every draw.
         progress: show a progress bar.
@@ -149,9 +150,12 @@ def train_pixelnerf(model: PixelNeRFModel, datasets: Sequence[Dataset], config: 
     step = 0
     bar = tqdm(total=config.steps, disable=not config.progress, unit="step", desc="pixelNeRF")
     while step < config.steps:
-        if config.max_seconds is not None and time.perf_counter() - t0 >= config.max_seconds:
+        elapsed = time.perf_counter() - t0
+        if config.max_seconds is not None and elapsed >= config.max_seconds:
             break
-        frac = step / max(config.steps - 1, 1)
+        # progress through the budget: steps or seconds, whichever runs out first
+        frac = min(1.0, max(step / max(config.steps - 1, 1),
+                            elapsed / config.max_seconds if config.max_seconds else 0.0))
         for group in optimizer.param_groups:
             group["lr"] = config.lr * config.lr_final_factor ** frac
         scene = scenes[int(torch.randint(len(scenes), (1,), generator=gen))]
