@@ -1028,27 +1028,25 @@ def _str_list(text: str) -> list[str]:
     return values
 
 
-def _frame_list(text: str) -> list[int]:
-    """``I,J,...``: frame indices (non-negative integers)."""
+def _ints(text: str, minimum: int, what: str) -> list[int]:
+    """``N1,N2,...``: integers of at least ``minimum`` (ArgumentTypeError naming ``what``)."""
     try:
         values = [int(v) for v in _str_list(text)]
     except ValueError:
         values = []
-    if not values or min(values) < 0:
-        raise argparse.ArgumentTypeError(f"expected comma-separated frame indices, got {text!r}")
+    if not values or min(values) < minimum:
+        raise argparse.ArgumentTypeError(f"expected comma-separated {what}, got {text!r}")
     return values
+
+
+def _frame_list(text: str) -> list[int]:
+    """``I,J,...``: frame indices (non-negative integers)."""
+    return _ints(text, 0, "frame indices")
 
 
 def _int_list(text: str) -> list[int]:
     """``N1,N2,...``: positive integers (grid sizes, image sizes)."""
-    try:
-        values = [int(v) for v in _str_list(text)]
-    except ValueError:
-        values = []
-    if not values or min(values) < 1:
-        raise argparse.ArgumentTypeError(f"expected comma-separated positive integers, got "
-                                         f"{text!r}")
-    return values
+    return _ints(text, 1, "positive integers")
 
 
 def _option_sweep(text: str):

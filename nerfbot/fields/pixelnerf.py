@@ -185,11 +185,12 @@ class PixelNeRFField(Field):
         self.rgb_head = nn.Linear(cfg.width // 2, 3)
         self.sources: Optional[SourceViews] = None
         self._features: Optional[torch.Tensor] = None
+        self._terms: Optional[torch.Tensor] = None
 
     # -- conditioning --------------------------------------------------------------------------
     def set_sources(self, sources: SourceViews) -> None:
         """Condition the field on ``sources`` (replacing any earlier ones)."""
-        self.sources, self._features = sources, None
+        self.sources, self._features, self._terms = sources, None, None
 
     def features(self) -> torch.Tensor:
         """(V, C, h, w) encoder features of the source views (cached in eval mode)."""
@@ -203,12 +204,16 @@ class PixelNeRFField(Field):
 
     def _feature_terms(self) -> torch.Tensor:
         """(V, pooled_after * width, h, w): every feature layer's weights applied to the
-        feature maps (no bias), stacked."""
+        feature maps (no bias), stacked (cached in eval mode, like the features)."""
+        if self._terms is not None and not self.training:
+            return self._terms
         weight = torch.cat([layer.weight for layer in self.feature_in])  # (K * W, C)
-        return torch.einsum("oc,vchw->vohw", weight, self.features())
+        terms = torch.einsum("oc,vchw->vohw", weight, self.features())
+        self._terms = None if self.training else terms
+        return terms
 
     def train(self, mode: bool = True):
-        self._features = None
+        self._features = self._terms = None
         return super().train(mode)
 
     def sample_features(self, points: torch.Tensor, maps: Optional[torch.Tensor] = None

@@ -126,8 +126,10 @@ def condition_on(model: PixelNeRFModel, dataset: Dataset, source_indices: Sequen
     bad = [i for i in source_indices if not 0 <= int(i) < len(dataset)]
     if bad:
         raise ValueError(f"{dataset.root}: no frame {bad[0]} (it has {len(dataset)})")
-    scene = SceneViews(dataset, model.aabb.device)
-    model.set_scene(scene.sources([int(i) for i in source_indices]), scene.aabb)
+    idx = [int(i) for i in source_indices]
+    sources = SourceViews.from_frames([dataset.images[i] for i in idx], dataset.c2w[idx],
+                                      dataset.intrinsics[idx], model.aabb.device)
+    model.set_scene(sources, dataset.aabb)
     return model
 
 
