@@ -1,5 +1,6 @@
 """pixelNeRF: projection of world points onto source features, pooling over views, errors, saving
-and loading, and training across scenes of a family that renders an unseen one."""
+and loading, training across scenes of a family that renders an unseen one, and fine-tuning on
+that scene's source views."""
 
 from __future__ import annotations
 
@@ -10,8 +11,8 @@ import torch
 from nerfbot.fields.pixelnerf import PixelNeRFField, PixelNeRFFieldConfig, SourceViews, project
 from nerfbot.models.pixelnerf import PixelNeRFModelConfig
 from nerfbot.ops.cameras import look_at, pixel_rays
-from nerfbot.train.pixelnerf import (PixelTrainConfig, build_pixelnerf, condition_on,
-                                     train_pixelnerf)
+from nerfbot.train.pixelnerf import (FinetuneConfig, PixelTrainConfig, build_pixelnerf,
+                                     condition_on, finetune_on, train_pixelnerf)
 from nerfbot.train.runs import load_model
 
 pytestmark = pytest.mark.slow(40)  # rough single-core seconds (tests/conftest.py)
@@ -171,6 +172,36 @@ def test_a_pixelnerf_run_loads_and_the_cli_scores_an_unseen_scene(family, traine
     assert "--sources" in capsys.readouterr().err
     assert main(["eval", str(run), "--data", str(family[3]), "--sources", "0,99"]) == 2
     assert "no frame 99" in capsys.readouterr().err
+
+
+def test_fine_tuning_on_the_source_views_improves_the_unseen_scene(family, trained, capsys):
+    import json
+
+    from nerfbot.app.cli import main
+    from nerfbot.data import load_dataset
+    from nerfbot.eval.evaluation import evaluate
+
+    _, run, _ = trained
+    model, _ = load_model(run)  # a copy: fine-tuning changes the weights
+    unseen = load_dataset(family[3])
+    sources = list(unseen.indices("train")[:2])
+    before = evaluate(condition_on(model, unseen, sources), unseen, "test", with_ssim=False)
+    summary = finetune_on(model, unseen, sources, FinetuneConfig(steps=50, lr=1e-3,
+                                                                 progress=False))
+    after = evaluate(model, unseen, "test", with_ssim=False)
+    # observed: 15.2 -> 16.1 dB; the model stays conditioned on the sources, in eval mode
+    assert summary["steps"] == 50 and not model.training
+    assert after["psnr"] > before["psnr"] + 0.4, (before, after)
+    with pytest.raises(ValueError, match="needs a budget"):
+        FinetuneConfig(steps=None).validate()
+    capsys.readouterr()
+    assert main(["eval", str(run), "--data", str(family[3]), "--sources", "0,1",
+                 "--finetune-seconds", "0.5", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["psnr"] > 14.0
+    with pytest.raises(SystemExit) as exit_:
+        main(["eval", str(run), "--data", str(family[3]), "--sources", "0,1",
+              "--finetune-seconds", "0"])
+    assert exit_.value.code == 2 and "positive number" in capsys.readouterr().err
 
 
 def test_the_pixelnerf_command_captures_a_family_and_trains(tmp_path, capsys):

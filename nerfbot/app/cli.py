@@ -427,21 +427,30 @@ def _float_list(text: str) -> list[float]:
     return values
 
 
-def _condition_pixelnerf(model, ds, sources, run: Path) -> None:
-    """Condition a pixelNeRF run on the frames ``sources`` of ``ds`` (the scene it renders);
-    UsageError for ``--sources`` with any other run, or a pixelNeRF run without them."""
+def _condition_pixelnerf(model, ds, args, run: Path) -> None:
+    """Condition a pixelNeRF run on the frames ``args.sources`` of ``ds`` (the scene it
+    renders), fine-tuned on them for ``args.finetune_seconds`` when given; UsageError for
+    either option with any other run, or a pixelNeRF run without sources."""
     from nerfbot.models.pixelnerf import PixelNeRFModel
-    from nerfbot.train.pixelnerf import condition_on
+    from nerfbot.train.pixelnerf import FinetuneConfig, condition_on, finetune_on
 
+    sources = getattr(args, "sources", None)
+    finetune = getattr(args, "finetune_seconds", None)
     if not isinstance(model, PixelNeRFModel):
-        if sources:
-            raise UsageError(f"--sources: {run} is not a pixelNeRF run (its scene is its own)")
+        if sources or finetune:
+            option = "--sources" if sources else "--finetune-seconds"
+            raise UsageError(f"{option}: {run} is not a pixelNeRF run (its scene is its own)")
         return
     if ds is None or not sources:
         raise UsageError(f"{run} is a pixelNeRF run: give the scene (--data) and the frames it "
                          "renders the scene from (--sources I,J,...)")
     try:
-        condition_on(model, ds, sources)
+        if finetune:
+            progress = not getattr(args, "no_progress", False)
+            finetune_on(model, ds, sources, FinetuneConfig(steps=None, max_seconds=finetune,
+                                                           progress=progress))
+        else:
+            condition_on(model, ds, sources)
     except ValueError as err:
         raise UsageError(f"--sources: {one_line(err)}") from None
 
@@ -461,7 +470,7 @@ def _run_and_dataset(args):
         data, ds = None, None
     else:
         data, ds = resolve_run_dataset(run, info["spec"].get("dataset"))
-    _condition_pixelnerf(model, ds, getattr(args, "sources", None), run)
+    _condition_pixelnerf(model, ds, args, run)
     return model, info, data, ds
 
 
@@ -799,7 +808,7 @@ def cmd_render(args) -> int:
     pixelnerf = info["spec"]["method"] == "pixelnerf"
     ds = _render_dataset(args, run, info, needed=not pixelnerf and args.path != "orbit"
                          and not args.sweep and not args.poses)
-    _condition_pixelnerf(model, ds, args.sources, run)
+    _condition_pixelnerf(model, ds, args, run)
     cams, conds = _render_plan(args, model, info, ds)
     thresholds = [threshold] if mode == "threshold" else []
     labels = model.label_head is not None
@@ -1047,6 +1056,17 @@ def _frame_list(text: str) -> list[int]:
 def _int_list(text: str) -> list[int]:
     """``N1,N2,...``: positive integers (grid sizes, image sizes)."""
     return _ints(text, 1, "positive integers")
+
+
+def _positive_float(text: str) -> float:
+    """A number above zero (seconds, lengths)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+    return value
 
 
 def _option_sweep(text: str):
@@ -1297,6 +1317,9 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
                    help="with --depth-sweep: write the sweep as a PNG plot here")
     p.add_argument("--sources", type=_frame_list, default=None, metavar="I,J,...",
                    help="a pixelNeRF run: the frames of --data it renders the scene from")
+    p.add_argument("--finetune-seconds", type=_positive_float, default=None, metavar="S",
+                   help="a pixelNeRF run: fine-tune it on the --sources frames' pixels for S "
+                        "seconds first (default: no fine-tuning)")
     p.add_argument("--device", type=_device, default="cpu")
     p.set_defaults(func=cmd_eval)
 
@@ -1415,6 +1438,9 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
     p.add_argument("--data", type=Path, default=None)
     p.add_argument("--sources", type=_frame_list, default=None, metavar="I,J,...",
                    help="a pixelNeRF run: the frames of --data it renders the scene from")
+    p.add_argument("--finetune-seconds", type=_positive_float, default=None, metavar="S",
+                   help="a pixelNeRF run: fine-tune it on the --sources frames' pixels for S "
+                        "seconds first (default: no fine-tuning)")
     p.add_argument("--device", type=_device, default="cpu")
     p.add_argument("--no-progress", action="store_true")
     cond = p.add_argument_group("dynamic and articulated runs")

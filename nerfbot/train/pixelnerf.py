@@ -1,5 +1,5 @@
-"""Training pixelNeRF across the scenes of a family, saving and loading it, and conditioning it on
-a scene's source views.
+"""Training pixelNeRF across the scenes of a family, saving and loading it, conditioning it on
+a scene's source views and fine-tuning it on them.
 
 Each step takes one scene at random, 1-3 of its training views at random as the sources, and
 random pixels of its training views as the targets (pixelNeRF's recipe); the loss is the coarse
@@ -133,6 +133,49 @@ def condition_on(model: PixelNeRFModel, dataset: Dataset, source_indices: Sequen
     return model
 
 
+def _fit(model: PixelNeRFModel, draw, steps: Optional[int], max_seconds: Optional[float], lr: float,
+         lr_final_factor: float, seed: int, progress: bool, desc: str) -> dict:
+    """Adam on the colour loss of the batches ``draw(generator)`` gives: (sources, aabb, rays,
+    target colours). The budget is ``steps`` and ``max_seconds``, whichever runs out first
+    (either may be None, not both); the lr decays exponentially to ``lr * lr_final_factor``
+    over it. Leaves the model in eval mode; returns
+    {"steps", "train_seconds", "loss" (mean of the last 100 steps), "curve" (step, seconds,
+    loss every 50 steps)}."""
+    device = model.aabb.device
+    optimizer = torch.optim.Adam(model.parameters(), lr=lr)
+    gen = torch.Generator().manual_seed(seed)
+    model.train()
+    losses, curve = [], []
+    t0 = time.perf_counter()
+    step = 0
+    bar = tqdm(total=steps, disable=not progress, unit="step", desc=desc)
+    while steps is None or step < steps:
+        elapsed = time.perf_counter() - t0
+        if max_seconds is not None and elapsed >= max_seconds:
+            break
+        frac = min(1.0, max(step / max(steps - 1, 1) if steps else 0.0,
+                            elapsed / max_seconds if max_seconds else 0.0))
+        for group in optimizer.param_groups:
+            group["lr"] = lr * lr_final_factor ** frac
+        sources, aabb, rays, target = draw(gen)
+        model.set_scene(sources, aabb)
+        loss, _ = model.loss(rays.to(device), target, gen)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        losses.append(float(loss.detach()))
+        step += 1
+        if step % 50 == 0 or step == steps:
+            recent = float(np.mean(losses[-50:]))
+            curve.append({"step": step, "seconds": time.perf_counter() - t0, "loss": recent})
+            bar.set_postfix(loss=f"{recent:.4f}")
+        bar.update(1)
+    bar.close()
+    model.eval()
+    return {"steps": step, "train_seconds": time.perf_counter() - t0,
+            "loss": float(np.mean(losses[-100:])) if losses else math.nan, "curve": curve}
+
+
 def train_pixelnerf(model: PixelNeRFModel, datasets: Sequence[Dataset], config: PixelTrainConfig,
                     out_dir: Optional[Path] = None) -> dict:
     """Train ``model`` across ``datasets`` (scenes of one family); when ``out_dir`` is given,
@@ -141,49 +184,73 @@ def train_pixelnerf(model: PixelNeRFModel, datasets: Sequence[Dataset], config: 
     config.validate()
     if not datasets:
         raise ValueError("pixelNeRF trains across scenes: give at least one dataset")
-    device = model.aabb.device
-    scenes = [SceneViews(ds, device) for ds in datasets]
-    optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
-    gen = torch.Generator().manual_seed(config.seed)
+    scenes = [SceneViews(ds, model.aabb.device) for ds in datasets]
     lo, hi = config.sources
-    model.train()
-    losses, curve = [], []
-    t0 = time.perf_counter()
-    step = 0
-    bar = tqdm(total=config.steps, disable=not config.progress, unit="step", desc="pixelNeRF")
-    while step < config.steps:
-        elapsed = time.perf_counter() - t0
-        if config.max_seconds is not None and elapsed >= config.max_seconds:
-            break
-        # progress through the budget: steps or seconds, whichever runs out first
-        frac = min(1.0, max(step / max(config.steps - 1, 1),
-                            elapsed / config.max_seconds if config.max_seconds else 0.0))
-        for group in optimizer.param_groups:
-            group["lr"] = config.lr * config.lr_final_factor ** frac
+
+    def draw(gen):
         scene = scenes[int(torch.randint(len(scenes), (1,), generator=gen))]
-        k = int(torch.randint(lo, hi + 1, (1,), generator=gen))
-        k = min(k, len(scene.train))
+        k = min(int(torch.randint(lo, hi + 1, (1,), generator=gen)), len(scene.train))
         chosen = scene.train[torch.randperm(len(scene.train), generator=gen)[:k]]
-        model.set_scene(scene.sources(chosen.tolist()), scene.aabb)
         rays, target = scene.random_pixels(model.config.rays_per_batch, gen)
-        loss, _ = model.loss(rays.to(device), target, gen)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
-        losses.append(float(loss.detach()))
-        step += 1
-        if step % 50 == 0 or step == config.steps:
-            recent = float(np.mean(losses[-50:]))
-            curve.append({"step": step, "seconds": time.perf_counter() - t0, "loss": recent})
-            bar.set_postfix(loss=f"{recent:.4f}")
-        bar.update(1)
-    bar.close()
-    model.eval()
-    summary = {"steps": step, "train_seconds": time.perf_counter() - t0,
-               "loss": float(np.mean(losses[-100:])) if losses else math.nan, "curve": curve}
+        return scene.sources(chosen.tolist()), scene.aabb, rays, target
+
+    summary = _fit(model, draw, config.steps, config.max_seconds, config.lr,
+                   config.lr_final_factor, config.seed, config.progress, "pixelNeRF")
     if out_dir is not None:
         save_pixelnerf(model, out_dir, config, [s.name for s in scenes], summary)
     return summary
+
+
+@dataclass
+class FinetuneConfig:
+    """Fine-tuning a trained pixelNeRF on one scene (pixelNeRF's optional per-scene step).
+
+    The model, conditioned on the scene's source views, learns those views' own pixels: they
+    are all a new scene gives. Every weight is trained, the encoder included.
+
+    Attributes:
+        steps: fine-tuning steps (None: ``max_seconds`` only).
+        max_seconds: stop after this many seconds (None: ``steps`` only).
+        lr: Adam learning rate (default: training's), decayed exponentially to a tenth over
+            the budget.
+        seed: seeds the pixel draws.
+        progress: show a progress bar.
+    """
+
+    steps: Optional[int] = 200
+    max_seconds: Optional[float] = None
+    lr: float = 5e-4
+    seed: int = 0
+    progress: bool = True
+
+    def validate(self) -> None:
+        if self.steps is None and self.max_seconds is None:
+            raise ValueError("fine-tuning needs a budget: steps or max_seconds")
+        if self.steps is not None and self.steps < 1:
+            raise ValueError(f"fine-tuning steps must be at least 1, got {self.steps}")
+        if self.max_seconds is not None and not self.max_seconds > 0:
+            raise ValueError(f"fine-tuning seconds must be positive, got {self.max_seconds}")
+        if not self.lr > 0:
+            raise ValueError(f"fine-tuning lr must be positive, got {self.lr}")
+
+
+def finetune_on(model: PixelNeRFModel, dataset: Dataset, source_indices: Sequence[int],
+                config: FinetuneConfig | None = None) -> dict:
+    """Condition ``model`` on ``dataset``'s frames ``source_indices`` and fine-tune it on their
+    pixels; the model stays conditioned on them, in eval mode. Returns :func:`_fit`'s summary."""
+    config = config or FinetuneConfig()
+    config.validate()
+    condition_on(model, dataset, source_indices)
+    scene = SceneViews(dataset, model.aabb.device)
+    scene.train = torch.as_tensor([int(i) for i in source_indices], dtype=torch.int64)
+    sources = model.field.sources
+
+    def draw(gen):
+        rays, target = scene.random_pixels(model.config.rays_per_batch, gen)
+        return sources, None, rays, target
+
+    return _fit(model, draw, config.steps, config.max_seconds, config.lr, 0.1, config.seed,
+                config.progress, "pixelNeRF fine-tuning")
 
 
 def pixelnerf_spec(model: PixelNeRFModel, config: PixelTrainConfig, scenes: list[str]) -> dict:
