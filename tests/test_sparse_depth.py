@@ -193,3 +193,21 @@ def test_the_keypoint_term_is_added_on_the_keypoint_rays_only(tiny_capture, tmp_
         assert len(out.rgb) == (512 // (s * s)) * s * s   # random pixels + 32 keypoint pixels
     # same rays, same colour loss: the difference is the keypoint term, positive
     assert losses[0.1] > losses[0.0]
+    # the keypoint pixels' colours are left out of the colour loss, which stays the random
+    # pixels' mean
+    seen = {}
+    colour_loss = trainer.model.loss
+
+    def spy(*args, **kwargs):
+        seen.update(kwargs)
+        return colour_loss(*args, **kwargs)
+
+    trainer.model.loss = spy
+    batch_loss(trainer.model, trainer.bank, 512, torch.Generator().manual_seed(0), 0.1, 32, 0.1)
+    weights = seen["pixel_weights"]
+    assert bool((weights[-32:] == 0).all()) and bool((weights[:-32] > 0).all())
+    assert float(weights.sum()) == pytest.approx(len(weights))
+    # a batch of few pixels gives the keypoints at most a quarter of them
+    _, out, s = batch_loss(trainer.model, trainer.bank, 64, torch.Generator().manual_seed(0),
+                           0.1, 32, 0.1)
+    assert int((seen["pixel_weights"] == 0).sum()) == 64 // (s * s) // 4

@@ -153,7 +153,7 @@ def main() -> None:
     for ax in axes.ravel():
         ax.axis("off")
     fig.suptitle(f"{folders[0].name} (unseen)", fontsize=10)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 0.985))  # room for the title
     fig.savefig(work / "pixelnerf.png", dpi=110)
 
     print(f"\npixelNeRF: {info['step']} steps in {info['train_seconds']:.0f} s on "

@@ -49,8 +49,8 @@ class TrainConfig:
     :func:`~nerfbot.ops.losses.keypoint_depth_loss` on the training frames' keypoints
     (``Dataset.keypoints``, from structure from motion). 0 = off."""
     sparse_depth_rays: int = 256
-    """Keypoint pixels per step for the sparse depth loss; they replace as many random pixels
-    of the batch (their colour is trained too)."""
+    """Keypoint pixels per step for the sparse depth loss (at most a quarter of the batch's
+    pixels); they replace as many random pixels of the batch, and only their depth is trained."""
     labels: bool = False
     """Train Semantic-NeRF's label branch (:mod:`nerfbot.models.labels`) on the capture's
     segmentation, classes from its manifest (:func:`nerfbot.data.labels.label_classes`)."""

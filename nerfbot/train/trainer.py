@@ -100,9 +100,11 @@ def batch_loss(model: Model, bank: "PixelBank", n_rays: int, generator: torch.Ge
     mean over its area, as a renderer's anti-aliasing or a camera's sensor makes it).
 
     With ``keypoints`` > 0, that many pixels holding sparse-depth keypoints
-    (:meth:`PixelBank.sample_keypoints`) join the batch, as DS-NeRF trains: their colour
-    counts like any pixel's, and their rays add ``sparse_depth_weight`` x
-    :func:`~nerfbot.ops.losses.keypoint_depth_loss`.
+    (:meth:`PixelBank.sample_keypoints`; no more than a quarter of the batch's pixels) join the
+    batch, as DS-NeRF trains: their rays add ``sparse_depth_weight`` x
+    :func:`~nerfbot.ops.losses.keypoint_depth_loss`, and their colours are left out of the
+    colour loss, which stays the mean over the random pixels (a few keypoints drawn again and
+    again are not a sample of the images).
 
     With ``label_weight`` > 0 (a model with a label head, a bank with labels:
     :meth:`PixelBank.load_labels`) the batch adds ``label_weight`` x the cross-entropy of the
@@ -119,6 +121,8 @@ def batch_loss(model: Model, bank: "PixelBank", n_rays: int, generator: torch.Ge
     clicks = 0
     if bank.clicks is not None and label_weight > 0:  # at most a quarter of the pixels
         clicks = max(1, min(label_pixels, len(bank.clicks), n_rays // k // 4))
+    if keypoints:
+        keypoints = max(1, min(keypoints, n_rays // k // 4))
     n_pixels = max(1, n_rays // k - keypoints - clicks)
     rays, target, slot = bank.sample(n_pixels, generator, s, jitter=model.pixel_jitter)
     parts = [(rays, target, slot)]
@@ -135,7 +139,11 @@ def batch_loss(model: Model, bank: "PixelBank", n_rays: int, generator: torch.Ge
         target, slot = torch.cat([p[1] for p in parts]), torch.cat([p[2] for p in parts])
     cond = None if bank.conds is None else bank.conds[slot].repeat_interleave(k, 0)
     weights = bank.last_weights
-    if weights is not None and len(parts) > 1:  # keypoint and click pixels weigh 1
+    if keypoints:  # keypoint pixels weigh 0, the random ones make up for them
+        random = weights if weights is not None else target.new_ones(n_pixels)
+        weights = torch.cat([random * ((n_pixels + keypoints) / n_pixels),
+                             target.new_zeros(keypoints)])
+    if weights is not None and len(weights) < len(target):  # click pixels weigh 1
         weights = torch.cat([weights, weights.new_ones(len(target) - len(weights))])
     loss, out = model.loss(rays, target, generator, cond, rays_per_pixel=k,
                            pixel_weights=weights)
