@@ -26,7 +26,10 @@ PATH_DESTS = {"data", "out", "run", "poses", "bench_table", "plot", "scene"}
 SKIP_DESTS = {"help", "verbose"}
 #: Flags every generated command carries, so that no command starts real work.
 REQUIRED_PATHS = {"capture": ("--scene", "--out"), "demo": ("--out",), "train": ("--data",),
-                  "bench": ("--data",)}
+                  "bench": ("--data",), "pixelnerf": ("--out",)}
+#: Commands given an existing plain file as --out, which they must refuse before any work
+#: (with any other --out they would capture a scene family and train).
+FILE_OUT = {"demo", "pixelnerf"}
 
 VALUES = st.sampled_from([
     "0", "-1", "1", "2", "3", "7", "-0", "0.5", "1e300", "-1e300", "1e-300", "nan", "inf", "-inf",
@@ -75,8 +78,8 @@ def command_lines(draw, root: Path) -> list[str]:
             argv.append(draw(paths))
     for flag in REQUIRED_PATHS.get(name, ()):
         value = draw(paths)
-        if flag == "--out" and name == "demo":
-            value = str(root / "a_file.txt")  # an existing file: demo must refuse it
+        if flag == "--out" and name in FILE_OUT:
+            value = str(root / "a_file.txt")  # an existing file: the command must refuse it
         argv += [flag, value]
     optional = [a for a in actions if a.option_strings]
     required = [a for a in optional if a.required]

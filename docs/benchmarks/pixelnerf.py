@@ -17,7 +17,8 @@ usage: python docs/benchmarks/pixelnerf.py WORK [--family workspace] [--train-se
      the same 6 views (its rendering time not counted).
 
 Writes WORK/pixelnerf.json, WORK/pixelnerf.png (one unseen scene: truth, pixelNeRF, pixelNeRF
-fine-tuned and ngp per K) and prints a markdown table. One thing at a time: nothing else should run meanwhile.
+fine-tuned and ngp per K) and prints a markdown table. One thing at a time: nothing else should
+run meanwhile.
 """
 
 from __future__ import annotations
