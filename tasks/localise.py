@@ -25,7 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-from dataclasses import replace
+from dataclasses import fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -43,8 +43,8 @@ from tasks.navigate import NAV_FIELD_OPTIONS, NavTaskConfig, World, ensure_train
 
 log = logging.getLogger(__name__)
 
-#: Estimators by name: (function, its config class).
-ESTIMATORS = {"inerf": (inerf, InerfConfig), "wide": (localise_wide, WideConfig)}
+#: Estimators by name (their configs: :func:`estimator_config`).
+ESTIMATORS = {"inerf": inerf, "wide": localise_wide}
 #: (translation m, rotation degrees) levels of the default basin sweep.
 DEFAULT_LEVELS = ((0.02, 1.0), (0.05, 3.0), (0.1, 10.0), (0.2, 15.0), (0.3, 20.0), (0.5, 30.0))
 #: Success: the estimate is this close to the true pose (metres, degrees).
@@ -65,9 +65,26 @@ def robot_views(world: World, cfg: NavTaskConfig, count: int, seed: int) -> list
     return [np.array([x, y, rng.uniform(-np.pi, np.pi)]) for x, y in xy]
 
 
+def estimator_config(name: str, planar: bool, options: dict | None = None):
+    """The config of estimator ``name`` with the pose model ``planar`` and ``options``, fields
+    of :class:`~nerfbot.query.localise.InerfConfig` (the wide estimator's closing iNeRF);
+    ValueError naming an unknown field."""
+    options = dict(options or {})
+    known = {f.name for f in fields(InerfConfig)} - {"planar"}
+    unknown = sorted(set(options) - known)
+    if unknown:
+        raise ValueError(f"--estimator-option: unknown {unknown}; choose from "
+                         f"{', '.join(sorted(known))}")
+    if name == "wide":
+        return WideConfig(planar=planar, refine=replace(WideConfig().refine, **options))
+    return InerfConfig(planar=planar, **options)
+
+
 def run_basin(cfg: NavTaskConfig, views: int, levels, estimators, out: Path,
-              planar: bool = False) -> dict:
-    """Every scene, view, level and estimator; returns the summary (also written to ``out``)."""
+              planar: bool = False, estimator_options: dict | None = None) -> dict:
+    """Every scene, view, level and estimator; returns the summary (also written to ``out``).
+    ``estimator_options`` change the estimators' iNeRF settings (:func:`estimator_config`)."""
+    configs = {name: estimator_config(name, planar, estimator_options) for name in estimators}
     records = []
     for s in range(cfg.scenes):
         seed = cfg.seed + s
@@ -87,9 +104,8 @@ def run_basin(cfg: NavTaskConfig, views: int, levels, estimators, out: Path,
                 for t, r in levels:
                     start = perturb(truth, t, r, rng, planar=planar)
                     for est_name in estimators:
-                        estimate, config = ESTIMATORS[est_name]
-                        est = estimate(model, image, world.intrinsics, start,
-                                       config(planar=planar))
+                        estimate = ESTIMATORS[est_name]
+                        est = estimate(model, image, world.intrinsics, start, configs[est_name])
                         dt, dr = pose_error(est.c2w, truth)
                         records.append({
                             "scene": name, "view": k, "translation": t, "rotation": r,
@@ -199,6 +215,10 @@ def main(argv=None) -> int:
                         metavar="KEY=VALUE",
                         help="field option of the training runs (repeatable), added to "
                         + ", ".join(f"{k}={v}" for k, v in NAV_FIELD_OPTIONS.items()))
+    parser.add_argument("--estimator-option", action="append", default=[], type=parse_option,
+                        metavar="KEY=VALUE",
+                        help="iNeRF setting of the estimators (repeatable; InerfConfig fields, "
+                             "e.g. rays=1024 or across_rays=false)")
     parser.add_argument("--cache", type=Path, default=None)
     parser.add_argument("--out", type=Path, default=Path("localise_out"))
     parser.add_argument("--device", default="cpu")
@@ -221,7 +241,8 @@ def main(argv=None) -> int:
     if args.cache is not None:
         cfg = replace(cfg, cache=args.cache)
     try:
-        summary = run_basin(cfg, args.views, args.levels, estimators, args.out, args.planar)
+        summary = run_basin(cfg, args.views, args.levels, estimators, args.out, args.planar,
+                            dict(args.estimator_option))
     except (ValueError, FileNotFoundError, RuntimeError) as err:
         parser.exit(2, f"{parser.prog}: error: {err}\n")
     print(json.dumps(summary) if args.json else format_summary(summary))

@@ -12,9 +12,10 @@ import torch
 
 from nerfbot.data import load_dataset
 from nerfbot.eval.evaluation import evaluate
-from nerfbot.ops.cameras import Cameras, look_at
+from nerfbot.ops.cameras import Cameras, Rays, look_at
 from nerfbot.ops.lie import se3_exp
-from nerfbot.query.localise import (InerfConfig, WideConfig, _gaussian_blur, _hypotheses, inerf,
+from nerfbot.query.localise import (InerfConfig, WideConfig, _gaussian_blur, _hypotheses,
+                                    _Observation, _photometric, across_rays, inerf,
                                     interest_pixels, localise_wide, perturb, planar_update,
                                     pose_error)
 from nerfbot.train.trainer import TrainConfig, Trainer
@@ -134,18 +135,60 @@ def _observation(model, ds, index):
     return ds.images[index][..., :3], intr, cams.c2w[0].cpu().numpy().astype(float)
 
 
-def test_inerf_recovers_a_small_perturbation(trained_tiny):
+def _whole_image_loss(model, image, intr, poses) -> list[float]:
+    """The mean squared colour error over every pixel of ``image`` at each of ``poses``."""
+    obs = _Observation(image, intr, InerfConfig(interest=False), torch.Generator(), "cpu")
+    ys, xs = np.mgrid[0:obs.h, 0:obs.w]
+    with torch.no_grad():
+        return _photometric(model, obs, torch.as_tensor(np.stack(poses), dtype=torch.float32),
+                            torch.as_tensor(xs.ravel()), torch.as_tensor(ys.ravel())).tolist()
+
+
+def test_inerf_reaches_the_fields_own_optimum_on_a_tiny_capture(trained_tiny):
+    """A briefly trained field's best-fitting pose is not the true one: on this capture
+    (64 px, the scene 2-4 m away) poses 1-7 cm from the truth fit the test views as well as
+    the truth does, so iNeRF is judged by the fit it reaches, and by the rotation, which the
+    image pins down (3 degrees is 6 px at this focal length)."""
     model, ds = trained_tiny
-    rng = np.random.default_rng(1)
-    index = ds.indices("test")[0]
-    image, intr, truth = _observation(model, ds, index)
-    start = perturb(truth, 0.05, 3.0, rng)
-    est = inerf(model, image, intr, start, InerfConfig(iterations=100, rays=512), seed=0)
-    dt, dr = pose_error(est.c2w, truth)
-    assert est.losses[-1] < 0.5 * est.losses[0]
-    # from 5 cm and 3 degrees; measured here 2.0 cm and 0.41 degrees (translation along the
-    # view axis is the slow direction on 64x64 images)
-    assert dt < 0.5 * 0.05 and dr < 0.3 * 3.0, (dt, dr)
+    for index in ds.indices("test"):
+        image, intr, truth = _observation(model, ds, index)
+        start = perturb(truth, 0.05, 3.0, np.random.default_rng(1))
+        est = inerf(model, image, intr, start, InerfConfig(iterations=100, rays=512), seed=0)
+        assert est.losses[-1] < 0.5 * est.losses[0]
+        at_estimate, at_truth, at_start = _whole_image_loss(model, image, intr,
+                                                            [est.c2w, truth, start])
+        # observed on both views over four seeds: 0.99-1.06 of the truth's error, 0.06-0.13 of
+        # the start's, 0.2-1.2 degrees from the truth
+        assert at_estimate < 1.15 * at_truth and at_estimate < 0.25 * at_start
+        assert pose_error(est.c2w, truth)[1] < 0.6 * 3.0
+
+
+def test_inerf_recovers_a_small_perturbation_of_the_painted_room():
+    """Where the truth is the colours' optimum (an analytic field), iNeRF recovers the pose."""
+    model = _PaintedRoom()
+    truth = look_at([0.3, -0.4, 0.45], [2.0, 0.2, 0.6])
+    image, intr = _painted_room_view(model, truth)
+    for seed in range(3):
+        start = perturb(truth, 0.05, 3.0, np.random.default_rng(seed))
+        est = inerf(model, image, intr, start, InerfConfig(iterations=100, rays=512))
+        dt, dr = pose_error(est.c2w, truth)
+        # observed: 2.0, 2.1 and 0.3 cm; 0.62, 0.52 and 0.08 degrees
+        assert dt < 0.5 * 0.05 and dr < 0.3 * 3.0, (seed, dt, dr)
+
+
+def test_origin_gradients_cross_the_rays():
+    g = torch.Generator().manual_seed(0)
+    origins = torch.randn(6, 3, generator=g, dtype=torch.float64, requires_grad=True)
+    directions = torch.nn.functional.normalize(torch.randn(6, 3, generator=g,
+                                                           dtype=torch.float64), dim=-1)
+    rays = across_rays(Rays(origins, directions, torch.ones(6, dtype=torch.float64)))
+    assert torch.equal(rays.origins, origins)
+    upstream = torch.randn(6, 3, generator=g, dtype=torch.float64)
+    (rays.origins * upstream).sum().backward()
+    along = (upstream * directions).sum(-1, keepdim=True)
+    assert torch.allclose(origins.grad, upstream - along * directions, atol=1e-12)
+    assert torch.allclose((origins.grad * directions).sum(-1), torch.zeros(6, dtype=torch.float64),
+                          atol=1e-12)
 
 
 def test_evaluation_with_pose_refinement_recovers_a_misplaced_test_camera(trained_tiny):

@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tasks.localise import main, plot_basin, robot_views, summarize
+from nerfbot.query.localise import WideConfig
+from tasks.localise import estimator_config, main, plot_basin, robot_views, summarize
 from tasks.nav_map import true_floor_map
 from tasks.navigate import NavTaskConfig, World
 
@@ -49,9 +50,18 @@ def test_summary_rates_and_plot(tmp_path):
     (["--estimators", "magic"], "unknown"),
     (["--levels", "0.1"], "levels"),
     (["--views", "0"], "views"),
+    (["--estimator-option", "magic=1"], "estimator-option: unknown ['magic']"),
 ])
 def test_command_line_errors(args, message, tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_info:
         main(args + ["--out", str(tmp_path / "out")])
     assert exit_info.value.code == 2
     assert message in capsys.readouterr().err
+
+
+def test_estimator_options_reach_both_estimators():
+    inerf_cfg = estimator_config("inerf", True, {"across_rays": False, "rays": 256})
+    assert inerf_cfg.planar and not inerf_cfg.across_rays and inerf_cfg.rays == 256
+    wide = estimator_config("wide", True, {"across_rays": False})
+    assert wide.planar and not wide.refine.across_rays
+    assert wide.refine.iterations == WideConfig().refine.iterations   # its own defaults kept

@@ -4,7 +4,10 @@
   batch of pixels, over a pose update applied through the exponential map,
   ``c2w = c2w_0 @ exp(xi)``. Pixels are drawn from an interest region (opencv keypoints,
   dilated), where the image gradient tells the pose apart. Its basin is narrow: a pixel's
-  colour says nothing about a pose that moves it by more than a few pixels.
+  colour says nothing about a pose that moves it by more than a few pixels. The ray origins'
+  gradients are kept only across their rays (:func:`across_rays`): along a ray they are
+  quadrature noise, which Adam's per-coordinate scaling would turn into steps along the view
+  axis.
 - :func:`localise_wide`: widens the basin by comparing whole images at low resolution, blurred
   (a Lucas-Kanade pyramid through the field): a grid of hypotheses around the guess is scored
   by 16 x 16 renders without gradients; the guess and the best few descend together at
@@ -36,7 +39,7 @@ import torch
 import torch.nn.functional as F
 
 from nerfbot.ops.alignment import rotation_angle_deg
-from nerfbot.ops.cameras import pixel_rays
+from nerfbot.ops.cameras import Rays, pixel_rays
 from nerfbot.ops.lie import se3_exp
 
 
@@ -77,6 +80,8 @@ class InerfConfig:
             uniformly, so flat regions still anchor the pose).
         dilate: interest-region growth around each keypoint, pixels.
         planar: update (dx, dy, dyaw) in the world instead of a 6-DoF twist (module docstring).
+        across_rays: pass the ray origins' gradients only across their rays
+            (:func:`across_rays`); False: the raw gradients of the samples' positions.
     """
 
     iterations: int = 80
@@ -86,6 +91,7 @@ class InerfConfig:
     interest_fraction: float = 0.75
     dilate: int = 3
     planar: bool = False
+    across_rays: bool = True
 
 
 @dataclass
@@ -136,11 +142,37 @@ class _Observation:
         return self.rgb[py.to(self.device), px.to(self.device)]
 
 
+class _AcrossRays(torch.autograd.Function):
+    """The identity on ray origins (R, 3) whose backward drops each gradient's component along
+    its ray's unit direction (R, 3). Moving an origin along its ray leaves the ray's line, and
+    so its colour, unchanged; but the quadrature's samples sit at fixed distances from the
+    origin, so that component of the gradient is the hash grid's variation along the ray,
+    noise that walks the pose along the view axis."""
+
+    @staticmethod
+    def forward(ctx, origins, directions):
+        ctx.save_for_backward(directions)
+        return origins.view_as(origins)
+
+    @staticmethod
+    def backward(ctx, grad):
+        (d,) = ctx.saved_tensors
+        return grad - (grad * d).sum(-1, keepdim=True) * d, None
+
+
+def across_rays(rays: Rays) -> Rays:
+    """``rays`` whose origins pass gradients only across the rays (:class:`_AcrossRays`)."""
+    return Rays(_AcrossRays.apply(rays.origins, rays.directions.detach()), rays.directions,
+                rays.z_per_t, rays.radii)
+
+
 def _photometric(model, obs: _Observation, c2w: torch.Tensor, px, py) -> torch.Tensor:
     """(K,) mean squared colour error of each of K poses c2w (K, 4, 4) at pixels (px, py)."""
     k = c2w.shape[0]
     n = len(px)
     rays = obs.rays(c2w.repeat_interleave(n, 0), px.repeat(k), py.repeat(k))
+    if obs.config.across_rays:
+        rays = across_rays(rays)
     rgb = model.render_rays_differentiable(rays).rgb
     return ((rgb - obs.target(px, py).repeat(k, 1)) ** 2).mean(-1).reshape(k, n).mean(-1)
 
@@ -225,6 +257,8 @@ class _LowRes:
         rays = pixel_rays(c2w.repeat_interleave(n, 0), o.fx * self.sx, o.fy * self.sy,
                           o.cx * self.sx, o.cy * self.sy, self.px.repeat(k), self.py.repeat(k),
                           1 / self.sx, 1 / self.sy)
+        if o.config.across_rays:
+            rays = across_rays(rays)
         rgb = self.model.render_rays_differentiable(rays).rgb
         rgb = rgb.reshape(k, self.res, self.res, 3).permute(0, 3, 1, 2)
         return ((_gaussian_blur(rgb, self.sigma) - self.target) ** 2).mean((1, 2, 3))
