@@ -11,10 +11,9 @@
 - :func:`localise_wide`: widens the basin by comparing whole images at low resolution, blurred
   (a Lucas-Kanade pyramid through the field): a grid of hypotheses around the guess is scored
   by 16 x 16 renders without gradients; the guess and the best few descend together at
-  16 x 16, the best two of them at 32 x 32; these two and the guess itself are polished by
-  iNeRF together, and the one whose colours fit best at full resolution wins. Its cost is
-  about one 16 x 16 render per hypothesis, the descents, and a short iNeRF run for three
-  starts.
+  16 x 16, the best two of them at 32 x 32; of these two and the guess itself, the one whose
+  colours fit best at full resolution starts an iNeRF run. Its cost is about one 16 x 16
+  render per hypothesis, the descents, and one iNeRF run.
 
 The pose update is one of two models (``planar`` in the configs):
 
@@ -317,13 +316,12 @@ class WideConfig:
             metres (3 steps per axis: -, 0, +).
         rotation: and +-this about each turned axis, degrees (5 steps: -, -/2, 0, +/2, +).
         keep: hypotheses that descend at the coarsest level (the guess and the best scored).
-        finalists: the starts kept after each stage (lowest error at that stage); with the
-            guess, they are polished by iNeRF together, and the one with the lowest
-            full-resolution error is the estimate.
+        finalists: the starts kept after each stage (lowest error at that stage); of them and
+            the guess, the one with the lowest full-resolution error starts the closing iNeRF.
         levels: (resolution, blur sigma in pixels of it, iterations, Adam rate) of each
             whole-image stage, coarse to fine.
         refine: the closing iNeRF's settings (its ``planar`` is ignored: the estimator's
-            applies).
+            applies); iNeRF's own defaults.
         planar: the ground-robot pose model (module docstring).
     """
 
@@ -332,7 +330,7 @@ class WideConfig:
     keep: int = 4
     finalists: int = 2
     levels: tuple = ((16, 1.0, 30, 0.03), (32, 1.0, 25, 0.01))
-    refine: InerfConfig = InerfConfig(iterations=30, lr=0.005)
+    refine: InerfConfig = InerfConfig()
     planar: bool = False
 
 
@@ -378,16 +376,19 @@ def localise_wide(model, image: np.ndarray, intrinsics, c2w_init: np.ndarray,
             c2w, last, _ = _adam(c2w, config.planar, iterations, lr, stage)
             c2w = c2w[torch.argsort(last)[:config.finalists]]
         # the finalists and the guess itself (plain iNeRF's start: the low-resolution renders
-        # alias, and their optimum can lie a few degrees off a good guess) are polished
-        # together and judged at full resolution
+        # alias, and their optimum can lie a few degrees off a good guess) are judged at full
+        # resolution, and iNeRF descends from the best: the pyramid leaves its finalists a few
+        # centimetres and degrees off, where iNeRF converges
         c2w = torch.cat([guess, c2w])
-        c2w, losses = _descend(model, obs, c2w, config.refine.iterations, config.refine.rays,
+        pixels = _evaluation_pixels(obs, 1024, seed)
+        with torch.no_grad():
+            start = c2w[int(torch.argmin(_photometric(model, obs, c2w, *pixels)))][None]
+        c2w, losses = _descend(model, obs, start, config.refine.iterations, config.refine.rays,
                                config.refine.lr, config.planar)
         with torch.no_grad():
-            final = _photometric(model, obs, c2w, *_evaluation_pixels(obs, 1024, seed))
-        best = int(torch.argmin(final))
-    return PoseEstimate(c2w[best].cpu().numpy().astype(float), float(final[best]),
-                        time.perf_counter() - t0, losses)
+            final = float(_photometric(model, obs, c2w, *pixels)[0])
+    return PoseEstimate(c2w[0].cpu().numpy().astype(float), final, time.perf_counter() - t0,
+                        losses)
 
 
 def perturb(c2w: np.ndarray, translation: float, rotation_deg: float,
