@@ -43,8 +43,12 @@ from tasks.navigate import NAV_FIELD_OPTIONS, NavTaskConfig, World, ensure_train
 
 log = logging.getLogger(__name__)
 
-#: Estimators by name (their configs: :func:`estimator_config`).
-ESTIMATORS = {"inerf": inerf, "wide": localise_wide}
+#: Estimators by name: (function, its config from the pose model and InerfConfig options).
+ESTIMATORS = {
+    "inerf": (inerf, lambda planar, options: InerfConfig(planar=planar, **options)),
+    "wide": (localise_wide, lambda planar, options: WideConfig(
+        planar=planar, refine=replace(WideConfig().refine, **options))),
+}
 #: (translation m, rotation degrees) levels of the default basin sweep.
 DEFAULT_LEVELS = ((0.02, 1.0), (0.05, 3.0), (0.1, 10.0), (0.2, 15.0), (0.3, 20.0), (0.5, 30.0))
 #: Success: the estimate is this close to the true pose (metres, degrees).
@@ -75,9 +79,7 @@ def estimator_config(name: str, planar: bool, options: dict | None = None):
     if unknown:
         raise ValueError(f"--estimator-option: unknown {unknown}; choose from "
                          f"{', '.join(sorted(known))}")
-    if name == "wide":
-        return WideConfig(planar=planar, refine=replace(WideConfig().refine, **options))
-    return InerfConfig(planar=planar, **options)
+    return ESTIMATORS[name][1](planar, options)
 
 
 def run_basin(cfg: NavTaskConfig, views: int, levels, estimators, out: Path,
@@ -104,7 +106,7 @@ def run_basin(cfg: NavTaskConfig, views: int, levels, estimators, out: Path,
                 for t, r in levels:
                     start = perturb(truth, t, r, rng, planar=planar)
                     for est_name in estimators:
-                        estimate = ESTIMATORS[est_name]
+                        estimate = ESTIMATORS[est_name][0]
                         est = estimate(model, image, world.intrinsics, start, configs[est_name])
                         dt, dr = pose_error(est.c2w, truth)
                         records.append({
