@@ -42,15 +42,16 @@ def test_navigation_tutorial_maps_plans_localises_and_drives(navigation):
     assert r["map"]["iou"] >= NAV_MIN_MAP_IOU
     assert r["reference_length"] > 1.0
     assert 0.8 * r["reference_length"] <= r["path_length"] <= 1.3 * r["reference_length"]
-    # Section 4 at this budget shows the estimators at work, not their accuracy: in fields this
-    # brief the colours' optimum lies 5-10 cm off the truth in some robot views whatever the
-    # start (the wide estimator lands within 5 cm on 12 of 20 views of room:0 and room:1 from
-    # 10, 20 and 30 cm alike, and its pick is the best of its candidates every time), so only a
-    # failed or blown-up estimate fails here; tests/test_localise.py holds the estimators to
-    # their accuracy where the truth is the optimum.
-    for name in ("iNeRF", "wide"):
-        errors = r["localise"][name]
-        assert len(errors["error_m"]) == 2
-        assert max(errors["error_m"]) < 1.0 and max(errors["error_deg"]) < 45.0, errors
+    # Section 4 at this budget: in fields this brief the colours' optimum lies 5-10 cm off the
+    # truth in some robot views whatever the start, so two views cannot show 2 cm. On 10 views
+    # each of room:0 and room:1 from 10 cm and 8 degrees, the wide estimator landed within 5 cm
+    # on 70 % (median 1.9 cm, at most 11.9 cm and 6.8 degrees) and iNeRF on 45 % (at most
+    # 18.8 cm); tests/test_localise.py holds both to their accuracy where the truth is the
+    # optimum.
+    wide, plain = r["localise"]["wide"], r["localise"]["iNeRF"]
+    assert len(wide["error_m"]) == 2 and len(plain["error_m"]) == 2
+    assert max(wide["error_m"]) < 0.25 and max(wide["error_deg"]) < 10.0, wide
+    assert sum(wide["error_m"]) / 2 < 0.10, wide
+    assert max(plain["error_m"]) < 0.4 and max(plain["error_deg"]) < 20.0, plain
     assert r["estimates"] >= 5 and r["estimate_error_m_median"] < NAV_MAX_ESTIMATE_ERROR_M
     assert r["goal_error_m"] < 0.10
