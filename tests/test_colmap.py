@@ -18,7 +18,7 @@ from nerfbot.data.colmap import (c2w_from_cam_from_world, cam_from_world_from_c2
 from nerfbot.ops.alignment import Similarity, pose_errors, robust_umeyama, umeyama
 from nerfbot.ops.cameras import look_at
 from nerfbot.sfm.dataset import dataset_input, images_input, poses_from_images
-from nerfbot.sfm.pipeline import SfmOptions
+from nerfbot.sfm.pipeline import SfmOptions, run_sfm
 
 pytestmark = pytest.mark.slow(35)
 
@@ -194,6 +194,45 @@ def test_sfm_registers_a_simulated_scene_with_small_pose_errors(textured_capture
     report_file = json.loads((out / "sfm_report.json").read_text())
     assert report_file["registered"] == report["registered"]
     assert (out / "sparse_pc.ply").stat().st_size > 0
+
+
+def test_images_with_a_small_share_of_the_typical_observations_lose_their_pose():
+    from types import SimpleNamespace
+
+    from nerfbot.sfm.pipeline import MIN_IMAGE_POINTS, _weak_images
+
+    def rec(counts):
+        return SimpleNamespace(images={i: SimpleNamespace(has_pose=True, num_points3D=c, name=i)
+                                       for i, c in enumerate(counts)})
+
+    # the tabletop at 1024 px: a view 180 degrees off on 25 repeated-texture matches; a weak
+    # but correct one on 37; the median image on 234
+    assert [im.name for im in _weak_images(rec([25, 37, 54, 234, 240, 250, 260]))] == [0]
+    assert [im.name for im in _weak_images(rec([MIN_IMAGE_POINTS - 1, 40, 44, 50]))] == [0]
+    # large images: under a tenth of the median image's observations
+    assert [im.name for im in _weak_images(rec([100, 1500, 1600, 1700]))] == [0]
+    assert _weak_images(rec([])) == []
+
+
+def test_guided_matching_verifies_more_matches_and_the_best_mapping_run_is_kept(
+        textured_capture, tmp_path):
+    sfm_input = dataset_input(textured_capture)
+    results = {}
+    for guided in (False, True):
+        results[guided] = run_sfm(sfm_input.root, sfm_input.names, tmp_path / f"guided-{guided}",
+                                  sfm_input.camera,
+                                  SfmOptions(threads=1, guided_matching=guided,
+                                             mapper_runs=1 if not guided else 2),
+                                  progress=False)
+        assert results[guided].summary()["inlier_matches"] == results[guided].inlier_matches
+    assert results[True].inlier_matches > 1.05 * results[False].inlier_matches > 0
+    runs = results[True].mapper_runs
+    assert [r["seed"] for r in runs] == [0, 1] and len(results[False].mapper_runs) == 1
+    for r in runs:   # a sound model explains a good share of the verified matches
+        assert r["registered"] >= 26 and 0.1 * results[True].inlier_matches < \
+            r["explained_matches"] < results[True].inlier_matches
+    with pytest.raises(ValueError, match="mapper_runs"):
+        SfmOptions(mapper_runs=0).check()
 
 
 def test_nerfbot_colmap_on_plain_images_orients_up_and_refuses_an_existing_folder(

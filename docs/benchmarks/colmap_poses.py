@@ -1,14 +1,14 @@
 """Poses from images: pycolmap on sims captures, against the true poses and in a trained field.
 
-usage: python docs/benchmarks/colmap_poses.py WORK [--scenes tabletop,glassware] [--size 512]
-                                              [--downscale 4] [--seconds 180] [--method ngp]
+usage: python docs/benchmarks/colmap_poses.py WORK [--scenes tabletop,glassware] [--size 1024]
+                                              [--downscale 8] [--seconds 180] [--method ngp]
 
 For each scene:
 
-1. ``nerfbot capture --scene S --size 512`` (60 train + 10 test views; skipped when WORK holds
+1. ``nerfbot capture --scene S --size 1024`` (60 train + 10 test views; skipped when WORK holds
    it already);
-2. ``nerfbot colmap`` on all 70 images at 512 px, intrinsics known and fixed, written at 128 px
-   (``--downscale 4``): registered images, seconds, and the rotation (degrees) and centre (% of
+2. ``nerfbot colmap`` on all 70 images at 1024 px, intrinsics known and fixed, written at 128 px
+   (``--downscale 8``): registered images, seconds, and the rotation (degrees) and centre (% of
    the diagonal of the true camera centres' box) errors after the similarity alignment;
 3. the same frames with their true poses (a copy of the written dataset whose poses are
    replaced), so the two datasets differ only in their poses;
@@ -46,7 +46,9 @@ def true_pose_twin(sfm: Path, capture: Path, twin: Path) -> None:
         frame["transform_matrix"] = truth[frame["file_path"]]
     meta.pop("ply_file_path", None)
     twin.mkdir(parents=True)
-    shutil.copytree(sfm / "images", twin / "images")
+    for folder in sfm.iterdir():   # images, depth, segmentation, sparse depth (not colmap/)
+        if folder.is_dir() and folder.name != "colmap":
+            shutil.copytree(folder, twin / folder.name)
     (twin / "transforms.json").write_text(json.dumps(meta, indent=2))
 
 
@@ -61,8 +63,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("work", type=Path)
     ap.add_argument("--scenes", default="tabletop,glassware")
-    ap.add_argument("--size", type=int, default=512)
-    ap.add_argument("--downscale", type=int, default=4)
+    ap.add_argument("--size", type=int, default=1024)
+    ap.add_argument("--downscale", type=int, default=8)
     ap.add_argument("--seconds", type=float, default=180.0)
     ap.add_argument("--method", default="ngp")
     args = ap.parse_args()

@@ -2,22 +2,26 @@
 
 usage: python docs/benchmarks/few_views.py WORK [--scenes tabletop,workspace:0]
                                            [--views 2,3,5,10] [--seconds 60] [--weight 0.1]
+                                           [--repeats 1] [--size 512] [--downscale 4]
+                                           [--no-guided-matching]
 
 Few-view work poses a scene from one side, as a robot's camera does from where it stands: for
 N training views, cameras on an arc of 60 degrees of azimuth around the scene's target (the
 scene's own rig radius, 35 degrees elevation), evenly spaced; 8 test views on the same arc
 between them, at 30 and 40 degrees elevation, the same for every N. For each scene and N:
 
-1. ``nerfbot capture --rig explicit`` at 512 px, then ``nerfbot colmap CAPTURE --known-poses
-   --downscale 4``: SIFT features and matches among the N training images only (the test
-   images are posed by a second capture and never matched), points triangulated with the
-   simulator's poses; images, depth and keypoints written at 128 px. The column "SfM alone"
+1. ``nerfbot capture --rig explicit`` at ``--size`` px, then ``nerfbot colmap CAPTURE
+   --known-poses --downscale D``: SIFT features and matches among the N training images only
+   (the test images are posed by a second capture and never matched), points triangulated
+   with the simulator's poses; images, depth and keypoints written at size / D px. The column "SfM alone"
    says whether ``nerfbot colmap`` without the poses registers the N views.
-2. ``nerfbot train --method ngp --max-seconds S``, with and without ``--sparse-depth-weight W``.
+2. ``nerfbot train --method ngp --max-seconds S --seed R``, with and without
+   ``--sparse-depth-weight W``, for R = 0 .. repeats - 1.
 3. ``nerfbot eval --data TESTSET --split test``: PSNR, SSIM, depth MAE on the 8 test views.
 
-Writes WORK/few_views.json, WORK/few_views.png (PSNR and depth MAE against N) and prints a
-markdown table. One thing at a time.
+Writes WORK/few_views.json (every run), WORK/few_views.png (medians over the repeats, PSNR and
+depth MAE against N) and prints a markdown table of the medians and, with repeats, of how many
+seeds sparse depth won. One thing at a time.
 """
 
 from __future__ import annotations
@@ -64,11 +68,11 @@ def arc_poses(scene: str, n: int) -> dict:
     return {"train": train, "test": test}
 
 
-def sfm_alone(data: Path, out: Path) -> dict:
+def sfm_alone(data: Path, out: Path, flags: list) -> dict:
     """Would structure from motion alone pose these views? (registered, rotation error)."""
     if not (out / "sfm_report.json").exists():
         try:
-            run(NERFBOT + ["colmap", data, "--out", out, "--no-progress"])
+            run(NERFBOT + ["colmap", data, "--out", out, "--no-progress", *flags])
         except subprocess.CalledProcessError as e:
             return {"registered": 0, "error": e.stderr.strip().splitlines()[-1]}
     report = json.loads((out / "sfm_report.json").read_text())
@@ -78,6 +82,13 @@ def sfm_alone(data: Path, out: Path) -> dict:
     return row
 
 
+METRICS = ("psnr", "ssim", "depth_mae_m")
+
+
+def median_of(runs: list) -> dict:
+    return {k: float(np.median([r[k] for r in runs])) for k in METRICS}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("work", type=Path)
@@ -85,84 +96,106 @@ def main() -> None:
     ap.add_argument("--views", default="2,3,5,10")
     ap.add_argument("--seconds", type=float, default=60.0)
     ap.add_argument("--weight", type=float, default=0.1)
+    ap.add_argument("--repeats", type=int, default=1, help="training seeds per point")
+    ap.add_argument("--size", type=int, default=512, help="capture size, px (SfM runs on it)")
+    ap.add_argument("--downscale", type=int, default=4, help="fields train on size / N px")
+    ap.add_argument("--no-guided-matching", action="store_true",
+                    help="nerfbot colmap --no-guided-matching (fewer keypoints)")
     args = ap.parse_args()
     counts = [int(v) for v in args.views.split(",")]
     args.work.mkdir(parents=True, exist_ok=True)
+    px = f"{args.size}px"
+    sfm_flags = ["--no-guided-matching"] if args.no_guided_matching else []
     results = {}
     for scene in args.scenes.split(","):
         tag = scene.replace(":", "_")
-        testset = args.work / f"{tag}-test128"
+        testset = args.work / f"{tag}-test{args.size // args.downscale}"
         if not testset.exists():
             poses = args.work / f"{tag}-test-poses.json"
             poses.write_text(json.dumps({"train": arc_poses(scene, 8)["test"]}))
-            capture = args.work / f"{tag}-test-512px"
-            run(NERFBOT + ["capture", "--scene", scene, "--size", 512, "--rig", "explicit",
+            capture = args.work / f"{tag}-test-{px}"
+            run(NERFBOT + ["capture", "--scene", scene, "--size", args.size, "--rig", "explicit",
                            "--poses", poses, "--test-views", 0, "--out", capture,
                            "--no-progress"])
-            run(NERFBOT + ["colmap", capture, "--out", testset, "--known-poses", "--downscale", 4,
-                           "--no-progress"])
+            run(NERFBOT + ["colmap", capture, "--out", testset, "--known-poses", "--downscale",
+                           args.downscale, "--no-progress", *sfm_flags])
             meta = json.loads((testset / "transforms.json").read_text())
             meta["test_filenames"] = meta["val_filenames"] = meta.pop("train_filenames")
             meta["train_filenames"] = []
             (testset / "transforms.json").write_text(json.dumps(meta, indent=2))
         rows = {}
         for n in counts:
-            capture = args.work / f"{tag}-{n}v-512px"
+            capture = args.work / f"{tag}-{n}v-{px}"
             if not (capture / "transforms.json").exists():
                 poses = args.work / f"{tag}-{n}v-poses.json"
                 poses.write_text(json.dumps({"train": arc_poses(scene, n)["train"]}))
-                run(NERFBOT + ["capture", "--scene", scene, "--size", 512, "--rig", "explicit",
-                               "--poses", poses, "--test-views", 0, "--out", capture,
+                run(NERFBOT + ["capture", "--scene", scene, "--size", args.size, "--rig",
+                               "explicit", "--poses", poses, "--test-views", 0, "--out", capture,
                                "--no-progress"])
             data = args.work / f"{tag}-{n}v"
             if not (data / "transforms.json").exists():
-                run(NERFBOT + ["colmap", capture, "--out", data, "--known-poses", "--downscale", 4,
-                               "--no-progress"])
+                run(NERFBOT + ["colmap", capture, "--out", data, "--known-poses", "--downscale",
+                               args.downscale, "--no-progress", *sfm_flags])
             report = json.loads((data / "sfm_report.json").read_text())
             files = list((data / "sparse_depth").rglob("*.npy")) \
                 if (data / "sparse_depth").exists() else []
             row = {"keypoints": int(sum(len(np.load(p)) for p in files)),
                    "points": report["points"],
-                   "sfm_alone": sfm_alone(capture, args.work / f"{tag}-{n}v-sfm")}
+                   "sfm_alone": sfm_alone(capture, args.work / f"{tag}-{n}v-sfm", sfm_flags)}
             for name, extra in (("rgb", []), ("sparse_depth",
                                               ["--sparse-depth-weight", args.weight])):
                 if name == "sparse_depth" and not row["keypoints"]:
                     continue
-                out = args.work / "runs" / f"{tag}-{n}v-{name}"
-                if not (out / "checkpoint.pt").exists():
-                    run(NERFBOT + ["train", "--data", data, "--method", "ngp", "--max-seconds",
-                                   args.seconds, "--out", out, "--no-progress", *extra])
-                ev = json.loads(run(NERFBOT + ["eval", out, "--data", testset, "--split", "test",
-                                               "--json"]))
-                row[name] = {k: ev.get(k) for k in ("psnr", "ssim", "depth_mae_m", "steps")}
+                runs = []
+                for seed in range(args.repeats):
+                    out = args.work / "runs" / f"{tag}-{n}v-{name}-s{seed}"
+                    if not (out / "checkpoint.pt").exists():
+                        run(NERFBOT + ["train", "--data", data, "--method", "ngp",
+                                       "--max-seconds", args.seconds, "--seed", seed, "--out", out,
+                                       "--no-progress", *extra])
+                    ev = json.loads(run(NERFBOT + ["eval", out, "--data", testset, "--split",
+                                                   "test", "--json"]))
+                    runs.append({k: ev.get(k) for k in (*METRICS, "steps")})
+                row[name] = {"runs": runs, "median": median_of(runs)}
+            if "sparse_depth" in row:   # paired by seed
+                pairs = list(zip(row["rgb"]["runs"], row["sparse_depth"]["runs"]))
+                row["sparse_depth_wins"] = {
+                    "psnr": sum(b["psnr"] > a["psnr"] for a, b in pairs),
+                    "depth_mae_m": sum(b["depth_mae_m"] < a["depth_mae_m"] for a, b in pairs)}
             rows[n] = row
             results[scene] = rows
             (args.work / "few_views.json").write_text(json.dumps(results, indent=2))
 
+    nan = {k: float("nan") for k in METRICS}
+    print(f"Medians over {args.repeats} seed(s); wins: seeds where sparse depth gave the higher "
+          "PSNR / the lower depth MAE.")
     print("| scene | views | keypoints | SfM alone registers | PSNR RGB / +sparse depth | "
-          "SSIM RGB / +sparse | depth MAE cm RGB / +sparse |")
-    print("|---|---|---|---|---|---|---|")
+          "SSIM RGB / +sparse | depth MAE cm RGB / +sparse | wins PSNR, depth |")
+    print("|---|---|---|---|---|---|---|---|")
     for scene, rows in results.items():
         for n, r in rows.items():
-            sd = r.get("sparse_depth") or {"psnr": float("nan"), "ssim": float("nan"),
-                                           "depth_mae_m": float("nan")}
+            rgb = r["rgb"]["median"]
+            sd = r["sparse_depth"]["median"] if "sparse_depth" in r else nan
+            wins = r.get("sparse_depth_wins")
+            won = f"{wins['psnr']}/{args.repeats}, {wins['depth_mae_m']}/{args.repeats}" \
+                if wins else "-"
             alone = r["sfm_alone"]
             reg = f"{alone['registered']}/{n}" + (
                 f" ({alone['rotation_deg_median']:.2f} deg)" if "rotation_deg_median" in alone
                 else "")
-            print(f"| {scene} | {n} | {r['keypoints']} | {reg} | {r['rgb']['psnr']:.2f} / "
-                  f"{sd['psnr']:.2f} | {r['rgb']['ssim']:.3f} / {sd['ssim']:.3f} | "
-                  f"{100 * r['rgb']['depth_mae_m']:.1f} / {100 * sd['depth_mae_m']:.1f} |")
+            print(f"| {scene} | {n} | {r['keypoints']} | {reg} | {rgb['psnr']:.2f} / "
+                  f"{sd['psnr']:.2f} | {rgb['ssim']:.3f} / {sd['ssim']:.3f} | "
+                  f"{100 * rgb['depth_mae_m']:.1f} / {100 * sd['depth_mae_m']:.1f} | {won} |")
 
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.5))
     for scene, rows in results.items():
         ns = sorted(rows)
         for name, style in (("rgb", "o--"), ("sparse_depth", "s-")):
             ok = [n for n in ns if name in rows[n]]
-            axes[0].plot(ok, [rows[n][name]["psnr"] for n in ok], style,
+            axes[0].plot(ok, [rows[n][name]["median"]["psnr"] for n in ok], style,
                          label=f"{scene} {name.replace('_', ' ')}")
-            axes[1].plot(ok, [100 * rows[n][name]["depth_mae_m"] for n in ok], style)
-    axes[0].set(xlabel="training views", ylabel="test PSNR (dB)")
+            axes[1].plot(ok, [100 * rows[n][name]["median"]["depth_mae_m"] for n in ok], style)
+    axes[0].set(xlabel="training views", ylabel=f"test PSNR (dB), median of {args.repeats}")
     axes[1].set(xlabel="training views", ylabel="test depth MAE (cm)", yscale="log")
     axes[0].legend(fontsize=7)
     fig.tight_layout()

@@ -983,7 +983,9 @@ def cmd_colmap(args) -> int:
                              f"got {metres!r}")
         baseline = (a, b, distance)
     options = SfmOptions(matcher=args.matcher, max_reproj_error_px=args.max_error,
-                         refine_rounds=args.refine_rounds, seed=args.seed)
+                         refine_rounds=args.refine_rounds, seed=args.seed,
+                         guided_matching=not args.no_guided_matching,
+                         mapper_runs=args.mapper_runs)
     report = poses_from_images(sfm_input, out, options, downscale=args.downscale,
                                baseline=baseline, known_poses=args.known_poses,
                                progress=not args.no_progress)
@@ -1535,6 +1537,13 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
     p.add_argument("--matcher", default="exhaustive", choices=("exhaustive", "sequential"),
                    help="match every pair (default), or each image with its next ones "
                         "(video-like captures)")
+    p.add_argument("--no-guided-matching", action="store_true",
+                   help="skip matching each verified pair again along its epipolar geometry "
+                        "(fewer and shorter tracks, less matching time)")
+    p.add_argument("--mapper-runs", type=_positive_int, default=2, metavar="N",
+                   help="incremental mapping runs from N seeds; the model that explains the "
+                        "most verified matches is kept (default 2; repeated texture can fold "
+                        "a run's model)")
     p.add_argument("--focal", type=_positive_float, default=None, metavar="PX",
                    help="images: known focal length in pixels (square pixels, centred); "
                         "default: estimated")

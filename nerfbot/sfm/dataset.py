@@ -22,7 +22,8 @@ Output layout::
                                rows, float32 .npy, for DS-NeRF (frames[].sparse_depth_file_path)
     OUT/sparse_pc.ply          COLMAP's sparse points in the frame of transforms.json
     OUT/colmap/database.db     features and matches
-    OUT/colmap/mapper/         the mapper's models as found (COLMAP's frame, before refinement)
+    OUT/colmap/mapper/RUN/     each mapping run's models as found (COLMAP's frame, before
+                               refinement)
     OUT/colmap/sparse/0/       the refined model: the input's image names and pixels, the frame
                                of transforms.json
     OUT/sfm_report.json        registration, timings, reprojection error, pose errors
