@@ -1,5 +1,6 @@
-"""Structure from motion with pycolmap: SIFT features, exhaustive or sequential matching,
-incremental mapping, then a refinement that COLMAP's defaults leave out.
+"""Structure from motion with pycolmap: SIFT features, exhaustive or sequential matching guided
+by each pair's two-view geometry, incremental mapping (the best of a few runs), then a
+refinement that COLMAP's defaults leave out.
 
 COLMAP's mapper keeps observations up to 4 px from their projection and bundle-adjusts with a
 squared loss, thresholds chosen for photographs thousands of pixels wide. On the small images a
