@@ -270,24 +270,29 @@ def _map(database: Path, image_dir: Path, out: Path, seed: int, known_intrinsics
                                         next_image_callback=callback)
 
 
-def explained_matches(rec: "pycolmap.Reconstruction", database: Path) -> int:
-    """Verified matches between registered images of ``rec`` whose two features observe the
-    same 3D point. A folded model leaves the matches across its fold unexplained (on the
-    glassware capture at 1024 px: 0.16 of them explained in a folded run, 0.28 in a sound one).
-    """
+def verified_matches(database: Path) -> list:
+    """Every verified image pair of ``database`` as (image_id_a, image_id_b, (M, 2) inlier
+    feature indices)."""
     db = pycolmap.Database.open(str(database))
     try:
         pairs, geometries = db.read_two_view_geometries()
     finally:
         db.close()
+    return [(*pycolmap.pair_id_to_image_pair(pair), g.inlier_matches)
+            for pair, g in zip(pairs, geometries) if len(g.inlier_matches)]
+
+
+def explained_matches(rec: "pycolmap.Reconstruction", verified: list) -> int:
+    """Verified matches (:func:`verified_matches`) between registered images of ``rec`` whose
+    two features observe the same 3D point. A folded model leaves the matches across its fold
+    unexplained (on the glassware capture at 1024 px: 0.16 of them explained in a folded run,
+    0.28 in a sound one)."""
     point_of = {i: np.array([p.point3D_id if p.has_point3D() else -1 for p in im.points2D],
                             dtype=np.int64)
                 for i, im in rec.images.items() if im.has_pose}
     explained = 0
-    for pair, geometry in zip(pairs, geometries):
-        a, b = pycolmap.pair_id_to_image_pair(pair)
-        matches = geometry.inlier_matches
-        if a in point_of and b in point_of and len(matches):
+    for a, b, matches in verified:
+        if a in point_of and b in point_of:
             pa, pb = point_of[a][matches[:, 0]], point_of[b][matches[:, 1]]
             explained += int(((pa == pb) & (pa >= 0)).sum())
     return explained
@@ -338,6 +343,7 @@ def run_sfm(image_dir: Path, image_names: Sequence[str], work_dir: Path,
         t = time.perf_counter()
         known = camera is not None and camera.fixed
         runs, rec, models, best = [], None, {}, -1
+        verified = verified_matches(database)
         for run in range(options.mapper_runs):
             bar.set_description(f"sfm: registering (run {run + 1} of {options.mapper_runs})")
             bar.n = 0
@@ -346,7 +352,7 @@ def run_sfm(image_dir: Path, image_names: Sequence[str], work_dir: Path,
             if not found:
                 continue
             largest = max(found.values(), key=lambda r: r.num_reg_images())
-            explained = explained_matches(largest, database)
+            explained = explained_matches(largest, verified)
             runs.append({"seed": options.seed + run, "registered": largest.num_reg_images(),
                          "explained_matches": explained})
             if explained > best:
