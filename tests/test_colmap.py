@@ -18,7 +18,7 @@ from nerfbot.data.colmap import (c2w_from_cam_from_world, cam_from_world_from_c2
 from nerfbot.ops.alignment import Similarity, pose_errors, robust_umeyama, umeyama
 from nerfbot.ops.cameras import look_at
 from nerfbot.sfm.dataset import dataset_input, images_input, poses_from_images
-from nerfbot.sfm.pipeline import SfmOptions, run_sfm
+from nerfbot.sfm.pipeline import MIN_PAIRS_AGREEING, SfmOptions, pose_agreement, run_sfm
 
 pytestmark = pytest.mark.slow(35)
 
@@ -233,6 +233,20 @@ def test_guided_matching_verifies_more_matches_and_the_best_mapping_run_is_kept(
             r["explained_matches"] < results[True].inlier_matches
     with pytest.raises(ValueError, match="mapper_runs"):
         SfmOptions(mapper_runs=0).check()
+    # the verified matches agree with the recovered poses, and stop agreeing with wrong ones
+    agreement = results[True].agreement
+    assert agreement["pairs_agreeing"] > 0.8 and agreement["matches_agreeing"] > 0.8
+    assert results[True].summary()["agreement"] == agreement
+    rec = results[True].reconstruction
+    scale = np.median([np.linalg.norm(im.projection_center()) for im in rec.images.values()
+                       if im.has_pose])
+    for k, im in enumerate(im for im in rec.images.values() if im.has_pose):
+        if k % 2:   # every other view moved sideways by a fifth of the cameras' distance
+            pose = im.cam_from_world()
+            rec.frames[im.frame_id].rig_from_world = pycolmap.Rigid3d(
+                pose.rotation, pose.translation + np.array([0.2 * scale, 0.0, 0.0]))
+    wrong = pose_agreement(rec, tmp_path / "guided-True" / "database.db")
+    assert wrong["pairs"] == agreement["pairs"] and wrong["pairs_agreeing"] < MIN_PAIRS_AGREEING
 
 
 def test_nerfbot_colmap_on_plain_images_orients_up_and_refuses_an_existing_folder(

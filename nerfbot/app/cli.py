@@ -992,6 +992,10 @@ def cmd_colmap(args) -> int:
     print(f"registered {report['registered']} of {report['images']} images in "
           f"{report['seconds']['total']:.1f} s; {report['points']} points, "
           f"{report['mean_reprojection_error_px']:.2f} px mean reprojection error")
+    agreement = report.get("agreement")
+    if agreement:
+        print(f"verified image pairs agreeing with the recovered poses: "
+              f"{100 * agreement['pairs_agreeing']:.0f} % of {agreement['pairs']}")
     if report["unregistered"]:
         shown = ", ".join(report["unregistered"][:5])
         more = " ..." if len(report["unregistered"]) > 5 else ""

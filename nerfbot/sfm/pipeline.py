@@ -38,6 +38,12 @@ MIN_TRIANGULATION_ANGLE_DEG = 1.5
 MIN_IMAGE_POINTS = 30
 #: ... and this share of the median registered image's observations.
 MIN_IMAGE_POINTS_SHARE = 0.1
+#: A verified match agrees with the recovered poses within this Sampson distance, pixels.
+AGREEMENT_MAX_ERROR_PX = 2.0
+#: Below this share of verified pairs agreeing with the recovered poses, the matches are
+#: dominated by a repeated texture: sound models measured 0.79-1.0, the glassware capture's
+#: periodic table 0.07-0.10 (BENCHMARKS, "Poses from images").
+MIN_PAIRS_AGREEING = 0.5
 
 
 @dataclass(frozen=True)
@@ -115,6 +121,8 @@ class SfmResult:
         inlier_matches: feature matches the two-view geometries verified, over all pairs.
         mapper_runs: per mapping run, its seed, registered images and the verified matches
             its largest model explains (both ends observations of one 3D point).
+        agreement: how far the verified matches agree with the recovered poses
+            (:func:`pose_agreement`), or None when not measured.
     """
 
     reconstruction: "pycolmap.Reconstruction"
@@ -125,6 +133,7 @@ class SfmResult:
     deregistered: list = field(default_factory=list)
     inlier_matches: int = 0
     mapper_runs: list = field(default_factory=list)
+    agreement: Optional[dict] = None
 
     def summary(self) -> dict:
         rec = self.reconstruction
@@ -139,6 +148,7 @@ class SfmResult:
             "points": int(rec.num_points3D()),
             "mean_track_length": float(rec.compute_mean_track_length()),
             "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()),
+            "agreement": self.agreement,
             "seconds": dict(self.seconds),
         }
 
@@ -298,6 +308,62 @@ def explained_matches(rec: "pycolmap.Reconstruction", verified: list) -> int:
     return explained
 
 
+def _skew(t: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+
+
+def pose_agreement(rec: "pycolmap.Reconstruction", database: Path,
+                   max_error_px: float = AGREEMENT_MAX_ERROR_PX) -> dict:
+    """How far the verified matches between registered images agree with the recovered poses.
+
+    A match agrees when its Sampson distance to the epipolar geometry of the two recovered
+    poses is under ``max_error_px`` (in normalised coordinates scaled by the focal length, so
+    lens distortion is removed first). A pair agrees when most of its verified matches do.
+    On a texture that repeats (a tiled or checkered surface), matches to the wrong copy of the
+    pattern agree with one another, verification keeps them, and views far apart get "verified"
+    pairs with a wrong geometry: few pairs then agree with any set of poses, and views may be
+    registered whole periods of the pattern away.
+
+    Returns:
+        {"pairs": verified pairs between registered images, "pairs_agreeing": their share that
+        agrees, "matches_agreeing": the share of their verified matches that agrees,
+        "max_error_px": the threshold}.
+    """
+    posed = {i: im for i, im in rec.images.items() if im.has_pose}
+    db = pycolmap.Database.open(str(database))
+    try:
+        pairs, geometries = db.read_two_view_geometries()
+        normalised = {}
+        for i, im in posed.items():
+            cam = rec.cameras[im.camera_id]
+            normalised[i] = np.asarray(cam.cam_from_img(
+                db.read_keypoints(i)[:, :2].astype(np.float64)), np.float64)
+    finally:
+        db.close()
+    agreeing, shares, matched, right = 0, 0, 0, 0
+    for pair, geometry in zip(pairs, geometries):
+        a, b = pycolmap.pair_id_to_image_pair(pair)
+        m = geometry.inlier_matches
+        if a not in posed or b not in posed or not len(m):
+            continue
+        pa, pb = posed[a].cam_from_world(), posed[b].cam_from_world()
+        rot = pb.rotation.matrix() @ pa.rotation.matrix().T
+        essential = _skew(pb.translation - rot @ pa.translation) @ rot
+        x1 = np.c_[normalised[a][m[:, 0]], np.ones(len(m))]
+        x2 = np.c_[normalised[b][m[:, 1]], np.ones(len(m))]
+        e1, e2 = x1 @ essential.T, x2 @ essential
+        sampson = np.abs(np.sum(x2 * e1, 1)) / np.sqrt(
+            e1[:, 0] ** 2 + e1[:, 1] ** 2 + e2[:, 0] ** 2 + e2[:, 1] ** 2 + 1e-300)
+        focal = float(np.mean(rec.cameras[posed[a].camera_id].focal_length_x))
+        ok = sampson * focal < max_error_px
+        shares += 1
+        agreeing += int(ok.mean() > 0.5)
+        matched += len(m)
+        right += int(ok.sum())
+    return {"pairs": shares, "pairs_agreeing": agreeing / max(shares, 1),
+            "matches_agreeing": right / max(matched, 1), "max_error_px": max_error_px}
+
+
 def _prepare(image_names, work_dir, options) -> tuple[list[str], Path, SfmOptions, int]:
     require_pycolmap()
     options = options or SfmOptions()
@@ -371,6 +437,12 @@ def run_sfm(image_dir: Path, image_names: Sequence[str], work_dir: Path,
             rec, options.max_reproj_error_px, options.refine_rounds,
             refine_intrinsics=not known, threads=threads)
         seconds["refinement"] = time.perf_counter() - t
+    agreement = pose_agreement(rec, database)
+    if agreement["pairs_agreeing"] < MIN_PAIRS_AGREEING:
+        log.warning(
+            "sfm: only %.0f %% of the verified image pairs agree with the recovered poses "
+            "(sound models: 80-100 %%): the matches are dominated by a repeated texture, and "
+            "some views may be posed whole periods of it away", 100 * agreement["pairs_agreeing"])
     seconds["total"] = time.perf_counter() - start
     registered = sorted(im.name for im in rec.images.values() if im.has_pose)
     bar.n = len(registered)
@@ -384,7 +456,7 @@ def run_sfm(image_dir: Path, image_names: Sequence[str], work_dir: Path,
     return SfmResult(reconstruction=rec, registered=registered,
                      unregistered=[n for n in names if n not in chosen], seconds=seconds,
                      models=len(models), deregistered=removed, inlier_matches=inliers,
-                     mapper_runs=runs)
+                     mapper_runs=runs, agreement=agreement)
 
 
 def triangulate_known_poses(image_dir: Path, image_names: Sequence[str], work_dir: Path,
