@@ -50,8 +50,9 @@ def test_eval_json(tiny_run, capsys):
 
 def test_eval_and_render_supersample_override(tiny_run, tmp_path, capsys):
     """--supersample 1 renders colour through the pixel centres, --supersample-pattern corners
-    through the centres and corners: other colours, the same depth; a non-positive value or
-    an unknown pattern is refused by the parser."""
+    through the centres and corners, grid through an S x S grid (the default, adaptive, mixes
+    the two): other colours, the same depth; a non-positive value or an unknown pattern is
+    refused by the parser."""
     capsys.readouterr()
     assert main(["eval", str(tiny_run), "--json", "--supersample", "1"]) == 0
     one = json.loads(capsys.readouterr().out)
@@ -74,8 +75,12 @@ def test_eval_and_render_supersample_override(tiny_run, tmp_path, capsys):
     capsys.readouterr()
     assert main(["eval", str(tiny_run), "--json", "--supersample-pattern", "corners"]) == 0
     corners = json.loads(capsys.readouterr().out)
-    assert corners["supersample_pattern"] == "corners" and two["supersample_pattern"] == "grid"
-    assert corners["psnr"] != two["psnr"] and corners["depth_mae_m"] == two["depth_mae_m"]
+    assert corners["supersample_pattern"] == "corners" and two["supersample_pattern"] == "adaptive"
+    assert corners["depth_mae_m"] == two["depth_mae_m"]
+    assert main(["eval", str(tiny_run), "--json", "--supersample-pattern", "grid"]) == 0
+    grid = json.loads(capsys.readouterr().out)
+    assert grid["supersample_pattern"] == "grid" and grid["psnr"] != corners["psnr"]
+    assert grid["depth_mae_m"] == two["depth_mae_m"]
     with pytest.raises(SystemExit):
         main(["eval", str(tiny_run), "--supersample-pattern", "diagonal"])
 

@@ -177,7 +177,7 @@ def test_supersampled_render_averages_colour_over_the_pixel_and_keeps_centre_dep
 
     aabb = torch.tensor([[-1.0, -1.0, 0.0], [1.0, 1.0, 1.0]])
     model = OccupancyModel(StripedSlabField(), FixedBackground((1.0, 1.0, 1.0)), aabb,
-                           OccupancyModelConfig(supersample=2)).eval()
+                           OccupancyModelConfig(supersample=2, supersample_pattern="grid")).eval()
     cams, _ = _down_camera(size=12)
     centre = render_image(model, cams, 0, supersample=1)
     fine = render_image(model, cams.scaled(2), 0, supersample=1)
@@ -255,7 +255,8 @@ def test_supersample_tolerance_casts_extra_rays_only_at_edges():
 
     aabb = torch.tensor([[-1.0, -1.0, 0.0], [1.0, 1.0, 1.0]])
     model = OccupancyModel(WideStripedSlabField(), FixedBackground((1.0, 1.0, 1.0)), aabb,
-                           OccupancyModelConfig(supersample=2, supersample_tolerance=0.1)).eval()
+                           OccupancyModelConfig(supersample=2, supersample_tolerance=0.1,
+                                                supersample_pattern="grid")).eval()
     cams, _ = _down_camera(size=24)
     centre = render_image(model, cams, 0, supersample=1)
     full = render_image(model, cams, 0, supersample=2, supersample_tolerance=0.0)
@@ -274,3 +275,37 @@ def test_supersample_tolerance_casts_extra_rays_only_at_edges():
     # a uniform image: only the border, whose outside is unknown
     assert edge_pixels(np.zeros((4, 4, 3)), 0.0).tolist() == [0, 1, 2, 3, 4, 7, 8, 11, 12, 13,
                                                               14, 15]
+
+
+def test_adaptive_pattern_takes_the_grid_where_centre_and_corners_disagree():
+    """"adaptive": pixels whose centre and four corner colours span more than the tolerance
+    get the S x S grid's mean (the grid render's colour there), the others keep the corner
+    rule (the "corners" render's colour); the depths stay the centre ray's. It is the default
+    pattern of the occupancy renderer."""
+    from nerfbot.models.occupancy import OccupancyModelConfig
+    from nerfbot.query.render import render_rays_chunked
+
+    assert OccupancyModelConfig().supersample_pattern == "adaptive"
+    aabb = torch.tensor([[-1.0, -1.0, 0.0], [1.0, 1.0, 1.0]])
+    model = OccupancyModel(WideStripedSlabField(), FixedBackground((1.0, 1.0, 1.0)), aabb,
+                           OccupancyModelConfig(supersample=2, adaptive_tolerance=0.1)).eval()
+    cams, _ = _down_camera(size=24)
+    centre = render_image(model, cams, 0, supersample=1)
+    corner_rule = render_image(model, cams, 0, supersample_pattern="corners")
+    grid = render_image(model, cams, 0, supersample_pattern="grid")
+    c = render_rays_chunked(model, cams.corner_rays(0))["rgb"].reshape(25, 25, 3).numpy()
+    five = np.stack([centre["rgb"], c[:-1, :-1], c[:-1, 1:], c[1:, :-1], c[1:, 1:]])
+    picked = (five.max(0) - five.min(0)).max(-1).reshape(-1) > 0.1
+    assert 0.05 < picked.mean() < 0.6           # the stripes' edges, not the whole image
+    img = render_image(model, cams, 0)          # the model's pattern and tolerance
+    rgb, g, r = (a.reshape(-1, 3) for a in (img["rgb"], grid["rgb"], corner_rule["rgb"]))
+    np.testing.assert_allclose(rgb[picked], g[picked], atol=1e-6)
+    np.testing.assert_allclose(rgb[~picked], r[~picked], atol=1e-6)
+    assert np.abs(rgb - r).max() > 0.05         # the grid does differ at the edges
+    for k in ("z_depth", "depth", "median_z_depth"):
+        np.testing.assert_array_equal(img[k], centre[k])
+    # a tolerance above any colour difference is the corner rule everywhere, 0 nearly the grid
+    np.testing.assert_allclose(render_image(model, cams, 0, adaptive_tolerance=2.0)["rgb"],
+                               corner_rule["rgb"], atol=1e-6)
+    with pytest.raises(ValueError, match="adaptive_tolerance"):
+        OccupancyModelConfig(adaptive_tolerance=-0.1)

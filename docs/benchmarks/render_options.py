@@ -9,6 +9,11 @@ what the geometry-only centre pass (``Model.render_geometry``) saves.
 
 usage: python docs/benchmarks/render_options.py DATA RUN NAME V1,V2,...
   e.g. ... bench/final/data_ns B/octree color_min_weight 0,1e-3,1e-2,3e-2
+Several options at once: NAME1+NAME2 and values V1+W1,V2+W2,... (e.g.
+``supersample_pattern+supersample_tolerance grid+0,corners+0,corners+0.1``).
+
+Prints, per value, the median render ms and the test PSNR over the whole image, the non-sky
+pixels and the objects (as ``nerfbot eval`` reports them).
 """
 import json
 import sys
@@ -44,27 +49,51 @@ class CentreColour:
                 if value else self.geometry
 
 
-if name == "centre_colour":
-    holder = CentreColour()
-else:
+names = name.split("+")
+holders = []
+for n in names:
+    if n == "centre_colour":
+        holders.append(CentreColour())
+        continue
     holder = next((c for c in (getattr(model, "kilo_config", None),
                                getattr(model, "config", None))
-                   if c is not None and hasattr(c, name)), None)
-if holder is None:
-    sys.exit(f"{run}: the model has no render option {name!r}")
-kind = type(getattr(holder, name))
-values = [v if kind is str else kind(float(v)) for v in values]
+                   if c is not None and hasattr(c, n)), None)
+    if holder is None:
+        sys.exit(f"{run}: the model has no render option {n!r}")
+    holders.append(holder)
+
+
+def parsed(value: str) -> tuple:
+    parts = value.split("+")
+    if len(parts) != len(names):
+        sys.exit(f"value {value!r}: expected {len(names)} parts joined by '+'")
+    out = []
+    for holder, n, v in zip(holders, names, parts):
+        kind = type(getattr(holder, n))
+        out.append(v if kind is str else kind(float(v)))
+    return tuple(out)
+
+
+def apply(value: tuple) -> None:
+    for holder, n, v in zip(holders, names, value):
+        setattr(holder, n, v)
+
+
+values = [parsed(v) for v in values]
 times = {v: [] for v in values}
 render_image(model, cams, 0)
 for _ in range(ROUNDS):
     for v in values:
-        setattr(holder, name, v)
+        apply(v)
         for i in range(len(cams)):
             t0 = time.perf_counter()
             render_image(model, cams, i)
             times[v].append(time.perf_counter() - t0)
 for v in values:
-    setattr(holder, name, v)
-    psnr = evaluate(model, ds, "test", with_ssim=False)["psnr"]
-    print(json.dumps({name: v, "render_ms": round(1e3 * float(np.median(times[v])), 2),
-                      "psnr": round(psnr, 3)}), flush=True)
+    apply(v)
+    result = evaluate(model, ds, "test", with_ssim=False)
+    shown = v[0] if len(v) == 1 else "+".join(str(x) for x in v)
+    print(json.dumps({name: shown, "render_ms": round(1e3 * float(np.median(times[v])), 2),
+                      **{k: round(result[k], 3) for k in ("psnr", "psnr_non_sky",
+                                                          "psnr_objects") if result.get(k) is not None}}),
+          flush=True)

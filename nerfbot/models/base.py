@@ -95,9 +95,12 @@ class Model(nn.Module, metaclass=abc.ABCMeta):
     #: its centre (:meth:`nerfbot.data.pixels.PixelBank.sample`).
     pixel_jitter: bool = False
 
-    #: Where a render with S > 1 casts its rays over a pixel: "grid" or "corners"
+    #: Where a render with S > 1 casts its rays over a pixel: "grid", "corners" or "adaptive"
     #: (:func:`nerfbot.query.render.render_image`).
     supersample_pattern: str = "grid"
+
+    #: The "adaptive" pattern's colour span above which a pixel gets the S x S grid.
+    adaptive_tolerance: float = 0.2
 
     #: Rendering casts the S x S rays only through pixels whose 3 x 3 neighbourhood of centre-ray
     #: colours spans more than this (:func:`nerfbot.query.render.render_image`); 0: every pixel.

@@ -27,7 +27,7 @@ DEPTH_MODES = ("expected", "median", "threshold")
 _IMAGE_KEYS = ("rgb", "opacity", "depth", "z_depth", "median_depth", "median_z_depth")
 
 #: How a supersampled render spreads its rays over a pixel (:func:`render_image`).
-SUPERSAMPLE_PATTERNS = ("grid", "corners")
+SUPERSAMPLE_PATTERNS = ("grid", "corners", "adaptive")
 
 
 def as_thresholds(threshold) -> list[float]:
@@ -111,7 +111,8 @@ def render_image(model: Model, cameras: Cameras, index: int, downscale: int = 1,
                  chunk: int = 1 << 14, cond=None, thresholds: Sequence[float] = (),
                  supersample: Optional[int] = None,
                  supersample_tolerance: Optional[float] = None, labels: bool = False,
-                 supersample_pattern: Optional[str] = None) -> dict:
+                 supersample_pattern: Optional[str] = None,
+                 adaptive_tolerance: Optional[float] = None) -> dict:
     """Render camera ``index`` as numpy images: rgb (H, W, 3) in [0, 1], and (H, W) opacity,
     depth (ray distance, m), z_depth (m), median_depth (ray distance, m), median_z_depth (m);
     with ``thresholds`` (K values, 1/m) also threshold_depth / threshold_z_depth (K, H, W),
@@ -132,7 +133,11 @@ def render_image(model: Model, cameras: Cameras, index: int, downscale: int = 1,
     pixel's four corner rays (:meth:`Cameras.corner_rays`, each shared by the pixels that meet
     there): rgb and opacity are :data:`CORNER_CENTRE_WEIGHT` x the centre ray's plus the rest
     spread evenly over the corners, (H+1)(W+1) + HW rays in all, about 2 per pixel; the
-    tolerance does not apply."""
+    tolerance does not apply. "adaptive" renders the corners, then sends the S x S rays
+    through the pixels whose centre and four corner colours span more than
+    ``adaptive_tolerance`` (None: the model's) in some channel, and their mean replaces the
+    corner rule there: the rule where the pixel is smooth, the training's estimator where it
+    is not."""
     s = model.supersample if supersample is None else supersample
     tol = getattr(model, "supersample_tolerance", 0.0) if supersample_tolerance is None \
         else float(supersample_tolerance)
@@ -143,39 +148,55 @@ def render_image(model: Model, cameras: Cameras, index: int, downscale: int = 1,
                          f"{pattern!r}")
     h = int(cameras.height[index]) // downscale
     w = int(cameras.width[index]) // downscale
-    if s > 1 and pattern == "corners":
+    if s > 1 and pattern in ("corners", "adaptive"):
         out = _render_camera_rays(model, cameras.rays(index, downscale), chunk, cond,
                                   thresholds, labels)
         corner = _render_camera_rays(model, cameras.corner_rays(index, downscale), chunk, cond,
                                      ())
+        centre_rgb = out["rgb"].reshape(h, w, 3)
         for key, shape in (("rgb", (h + 1, w + 1, 3)), ("opacity", (h + 1, w + 1))):
             c = corner[key].reshape(shape)
             around = 0.25 * (c[:-1, :-1] + c[:-1, 1:] + c[1:, :-1] + c[1:, 1:])
             out[key] = CORNER_CENTRE_WEIGHT * out[key] \
                 + (1.0 - CORNER_CENTRE_WEIGHT) * around.reshape(out[key].shape)
+        if pattern == "adaptive":
+            tol = getattr(model, "adaptive_tolerance", 0.2) if adaptive_tolerance is None \
+                else float(adaptive_tolerance)
+            c = corner["rgb"].reshape(h + 1, w + 1, 3)
+            five = torch.stack([centre_rgb, c[:-1, :-1], c[:-1, 1:], c[1:, :-1], c[1:, 1:]])
+            spread = (five.amax(0) - five.amin(0)).amax(-1)
+            _grid_pixels(model, cameras, index, downscale, s, h, w, chunk, cond, out,
+                         torch.nonzero(spread.reshape(-1) > tol)[:, 0].cpu())
         return _image_result(out, h, w, labels)
     # with S x S rays through every pixel, the centre rays give only the depths
     geometry_only = s > 1 and tol <= 0 and not labels
     out = _render_camera_rays(model, cameras.rays(index, downscale), chunk, cond, thresholds,
                               labels, geometry_only)
     if s > 1:
-        fine_rays = cameras.rays(index, downscale, s)
         if tol > 0:
             pick = torch.as_tensor(edge_pixels(out["rgb"].reshape(h, w, 3).cpu().numpy(), tol))
         else:
             pick = torch.arange(h * w)
-        if len(pick):
-            # the S x S fine-grid rays of each picked pixel, pixel after pixel
-            py, px = pick // w, pick % w
-            dy, dx = torch.meshgrid(torch.arange(s), torch.arange(s), indexing="ij")
-            fine = (py[:, None] * s + dy.reshape(1, -1)) * (w * s) + px[:, None] * s \
-                + dx.reshape(1, -1)
-            sub = _render_camera_rays(model, fine_rays[fine.reshape(-1).to(fine_rays.origins.device)],
-                                      chunk, cond, ())
-            pick = pick.to(out["rgb"].device)
-            out["rgb"][pick] = sub["rgb"].reshape(len(pick), s * s, 3).mean(1)
-            out["opacity"][pick] = sub["opacity"].reshape(len(pick), s * s).mean(1)
+        _grid_pixels(model, cameras, index, downscale, s, h, w, chunk, cond, out, pick)
     return _image_result(out, h, w, labels)
+
+
+def _grid_pixels(model: Model, cameras: Cameras, index: int, downscale: int, s: int, h: int,
+                 w: int, chunk: int, cond, out: dict, pick: torch.Tensor) -> None:
+    """Replace ``out``'s rgb (H*W, 3) and opacity (H*W,) at the row-major pixel indices
+    ``pick`` (P,) by the means of S x S rays through each of those pixels."""
+    if not len(pick):
+        return
+    fine_rays = cameras.rays(index, downscale, s)
+    # the S x S fine-grid rays of each picked pixel, pixel after pixel
+    py, px = pick // w, pick % w
+    dy, dx = torch.meshgrid(torch.arange(s), torch.arange(s), indexing="ij")
+    fine = (py[:, None] * s + dy.reshape(1, -1)) * (w * s) + px[:, None] * s + dx.reshape(1, -1)
+    sub = _render_camera_rays(model, fine_rays[fine.reshape(-1).to(fine_rays.origins.device)],
+                              chunk, cond, ())
+    pick = pick.to(out["rgb"].device)
+    out["rgb"][pick] = sub["rgb"].reshape(len(pick), s * s, 3).mean(1)
+    out["opacity"][pick] = sub["opacity"].reshape(len(pick), s * s).mean(1)
 
 
 def _image_result(out: dict, h: int, w: int, labels: bool) -> dict:
