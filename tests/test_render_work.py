@@ -116,6 +116,7 @@ def test_supersampled_image_renders_centre_rays_without_colour():
     field = CountingBlobs()
     model = _model(field, 4)
     model.config.supersample = 2
+    model.config.supersample_pattern = "grid"   # 2 x 2 rays through every pixel
     c2w = look_at(np.array([0.2, 0.3, 2.5]), np.zeros(3), up=np.array([0, 1.0, 0]))
     cams = Cameras.from_numpy(c2w[None], [[40.0, 40.0, 16.0, 16.0]], [[32, 32]])
     field.colour_calls = 0
