@@ -93,7 +93,7 @@ for v in values:
     apply(v)
     result = evaluate(model, ds, "test", with_ssim=False)
     shown = v[0] if len(v) == 1 else "+".join(str(x) for x in v)
+    psnrs = {k: round(result[k], 3) for k in ("psnr", "psnr_non_sky", "psnr_objects")
+             if result.get(k) is not None}
     print(json.dumps({name: shown, "render_ms": round(1e3 * float(np.median(times[v])), 2),
-                      **{k: round(result[k], 3) for k in ("psnr", "psnr_non_sky",
-                                                          "psnr_objects") if result.get(k) is not None}}),
-          flush=True)
+                      **psnrs}), flush=True)

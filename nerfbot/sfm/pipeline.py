@@ -354,7 +354,7 @@ def pose_agreement(rec: "pycolmap.Reconstruction", database: Path,
         e1, e2 = x1 @ essential.T, x2 @ essential
         sampson = np.abs(np.sum(x2 * e1, 1)) / np.sqrt(
             e1[:, 0] ** 2 + e1[:, 1] ** 2 + e2[:, 0] ** 2 + e2[:, 1] ** 2 + 1e-300)
-        focal = float(np.mean(rec.cameras[posed[a].camera_id].focal_length_x))
+        focal = float(rec.cameras[posed[a].camera_id].mean_focal_length())
         ok = sampson * focal < max_error_px
         shares += 1
         agreeing += int(ok.mean() > 0.5)
