@@ -2,6 +2,7 @@
 
 usage: python docs/benchmarks/viewer_latency.py RUN [RUN ...] [--moves 8]
                                                 [--viewport 960 540] [--json OUT.json]
+                                                [--supersample-pattern grid|corners|adaptive]
 
 For each run, the viewer of ``nerfbot view RUN`` (built by the command's own code, in this
 process) is opened by headless Chromium (the system's, driven by playwright), which then drags
@@ -17,7 +18,8 @@ frame arrives. Measured on the viewer's side, per run:
 
 Each run is measured in a fresh process (its first frame pays what a fresh ``nerfbot view``
 pays, e.g. loading the numba kernels). The browser runs on the same two cores (software WebGL),
-as a browser on a robot's computer would; its share is in the times.
+as a browser on a robot's computer would; its share is in the times. ``--supersample-pattern``
+sets the runs' render option (the pattern of their full frames) instead of their own.
 """
 
 from __future__ import annotations
@@ -36,9 +38,15 @@ from playwright.sync_api import sync_playwright
 from nerfbot.app.cli import build_parser, make_viewer
 
 
-def measure(run: Path, moves: int, viewport: tuple[int, int], chromium: str) -> dict:
+def measure(run: Path, moves: int, viewport: tuple[int, int], chromium: str,
+            pattern: str | None = None) -> dict:
     args = build_parser().parse_args(["view", str(run), "--port", "0", "--no-cameras"])
     viewer = make_viewer(args)
+    if pattern is not None:
+        config = getattr(viewer.model, "config", None)
+        if config is None or not hasattr(config, "supersample_pattern"):
+            raise SystemExit(f"{run}: its renderer has no supersample_pattern option")
+        config.supersample_pattern = pattern
     try:
         with sync_playwright() as pw:
             browser = pw.chromium.launch(executable_path=chromium,
@@ -85,18 +93,22 @@ def main(argv=None) -> int:
     p.add_argument("--moves", type=int, default=8)
     p.add_argument("--viewport", type=int, nargs=2, default=(960, 540), metavar=("W", "H"))
     p.add_argument("--json", type=Path, default=None)
+    p.add_argument("--supersample-pattern", default=None, choices=("grid", "corners", "adaptive"))
     p.add_argument("--single", action="store_true", help=argparse.SUPPRESS)  # one run, JSON out
     args = p.parse_args(argv)
     chromium = shutil.which("chromium") or shutil.which("chromium-browser")
     if chromium is None:
         raise SystemExit("needs Chromium (apt-get install chromium)")
     if args.single:
-        print(json.dumps(measure(args.runs[0], args.moves, tuple(args.viewport), chromium)))
+        print(json.dumps(measure(args.runs[0], args.moves, tuple(args.viewport), chromium,
+                                 args.supersample_pattern)))
         return 0
     rows = []
     for run in args.runs:
+        pattern = [] if args.supersample_pattern is None else \
+            ["--supersample-pattern", args.supersample_pattern]
         done = subprocess.run([sys.executable, __file__, str(run), "--single", "--moves",
-                               str(args.moves), "--viewport", *map(str, args.viewport)],
+                               str(args.moves), "--viewport", *map(str, args.viewport), *pattern],
                               capture_output=True, text=True, check=True)
         rows.append(json.loads(done.stdout.strip().splitlines()[-1]))
     print("| run | first frame s | first full frame s | preview px | preview render ms "
