@@ -12,7 +12,8 @@ repeats gives matches to the wrong copy of a pattern; if they agree with one ano
 verification keeps them and the right ones go.
 
 Prints the medians over pairs and the share of pairs whose verified matches are mostly right,
-and which kind of two-view geometry verification chose (essential, fundamental or planar).
+the same by the angle between the two cameras' optical axes, and which kind of two-view
+geometry verification chose (essential, fundamental or planar).
 """
 
 from __future__ import annotations
@@ -68,7 +69,7 @@ def main() -> None:
         fx, fy, cx, cy = camera.params[:4]
         K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
         pairs, geometries = db.read_two_view_geometries()
-        raw_share, verified_share, configs = [], [], Counter()
+        raw_share, verified_share, configs, angles = [], [], Counter(), []
         counts, right = [0, 0], [0, 0]
         for pair, geometry in zip(pairs, geometries):
             a, b = pycolmap.pair_id_to_image_pair(pair)
@@ -84,6 +85,8 @@ def main() -> None:
             if len(kept):
                 ok = sampson_px(F, ka[kept[:, 0]], kb[kept[:, 1]]) < args.max_error
                 verified_share.append(ok.mean())
+                axes = truth[names[a]][:3, 2] @ truth[names[b]][:3, 2]
+                angles.append(np.degrees(np.arccos(np.clip(axes, -1.0, 1.0))))
                 configs[_CONFIGS.get(int(geometry.config), str(geometry.config))] += 1
                 counts[1] += len(kept)
                 right[1] += int(ok.sum())
@@ -96,7 +99,14 @@ def main() -> None:
           f"matches {np.median(raw_share):.2f} (median over pairs), "
           f"verified matches {np.median(verified_share):.2f}; pooled over pairs: matches "
           f"{right[0] / max(counts[0], 1):.2f}, verified {right[1] / max(counts[1], 1):.2f}")
-    print(f"verified pairs whose matches are mostly right: {(verified_share > 0.5).mean():.2f}")
+    right_pairs = verified_share > 0.5
+    print(f"verified pairs whose matches are mostly right: {right_pairs.mean():.2f} "
+          f"({right_pairs.sum()} of {len(right_pairs)})")
+    angles = np.array(angles)
+    for lo, hi in ((0, 15), (15, 30), (30, 60), (60, 180)):
+        inside = (angles >= lo) & (angles < hi)
+        print(f"  cameras {lo}-{hi} deg apart: {inside.sum()} verified pairs, "
+              f"{(inside & right_pairs).sum()} mostly right")
     print("two-view geometry: " + ", ".join(f"{k} {v}" for k, v in configs.most_common()))
 
 
