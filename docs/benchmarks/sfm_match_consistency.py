@@ -25,30 +25,9 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from nerfbot.ops.cameras import opengl_to_opencv
+from nerfbot.data.colmap import cam_from_world_from_c2w
 from nerfbot.sfm.dataset import dataset_input
-
-
-def _skew(t: np.ndarray) -> np.ndarray:
-    return np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-
-
-def sampson_px(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
-    """(M,) Sampson distances in pixels of matched pixels x1, x2 (M, 2) under F (3, 3)."""
-    h1, h2 = np.c_[x1, np.ones(len(x1))], np.c_[x2, np.ones(len(x2))]
-    f1, f2 = h1 @ F.T, h2 @ F
-    num = np.sum(h2 * f1, 1) ** 2
-    return np.sqrt(num / (f1[:, 0] ** 2 + f1[:, 1] ** 2 + f2[:, 0] ** 2 + f2[:, 1] ** 2))
-
-
-def true_fundamental(K: np.ndarray, c2w_a: np.ndarray, c2w_b: np.ndarray) -> np.ndarray:
-    """F (3, 3) with x_b^T F x_a = 0 for two OpenGL camera-to-world poses (4, 4)."""
-    wa, wb = np.linalg.inv(opengl_to_opencv(c2w_a)), np.linalg.inv(opengl_to_opencv(c2w_b))
-    R = wb[:3, :3] @ wa[:3, :3].T
-    t = wb[:3, 3] - R @ wa[:3, 3]
-    Ki = np.linalg.inv(K)
-    return Ki.T @ _skew(t) @ R @ Ki
-
+from nerfbot.sfm.pipeline import epipolar_errors_px
 
 _CONFIGS = {2: "essential", 3: "fundamental", 4: "planar", 5: "panoramic",
             6: "planar or panoramic", 7: "watermark", 8: "multiple"}
@@ -66,24 +45,28 @@ def main() -> None:
     try:
         names = {im.image_id: im.name for im in db.read_all_images()}
         camera = db.read_all_cameras()[0]
-        fx, fy, cx, cy = camera.params[:4]
-        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+        focal = camera.mean_focal_length()
+        world_to_cam = {i: cam_from_world_from_c2w(truth[n])[:3] for i, n in names.items()}
+        normalised = {i: np.asarray(camera.cam_from_img(
+            db.read_keypoints(i)[:, :2].astype(np.float64)), np.float64) for i in names}
         pairs, geometries = db.read_two_view_geometries()
         raw_share, verified_share, configs, angles = [], [], Counter(), []
         counts, right = [0, 0], [0, 0]
         for pair, geometry in zip(pairs, geometries):
             a, b = pycolmap.pair_id_to_image_pair(pair)
-            F = true_fundamental(K, truth[names[a]], truth[names[b]])
-            ka, kb = db.read_keypoints(a)[:, :2], db.read_keypoints(b)[:, :2]
             raw = db.read_matches(a, b)
             if len(raw):
-                ok = sampson_px(F, ka[raw[:, 0]], kb[raw[:, 1]]) < args.max_error
+                ok = epipolar_errors_px(world_to_cam[a], world_to_cam[b],
+                                        normalised[a][raw[:, 0]], normalised[b][raw[:, 1]],
+                                        focal) < args.max_error
                 raw_share.append(ok.mean())
                 counts[0] += len(raw)
                 right[0] += int(ok.sum())
             kept = geometry.inlier_matches
             if len(kept):
-                ok = sampson_px(F, ka[kept[:, 0]], kb[kept[:, 1]]) < args.max_error
+                ok = epipolar_errors_px(world_to_cam[a], world_to_cam[b],
+                                        normalised[a][kept[:, 0]], normalised[b][kept[:, 1]],
+                                        focal) < args.max_error
                 verified_share.append(ok.mean())
                 axes = truth[names[a]][:3, 2] @ truth[names[b]][:3, 2]
                 angles.append(np.degrees(np.arccos(np.clip(axes, -1.0, 1.0))))

@@ -1202,6 +1202,18 @@ def _capture_arguments(parser: argparse.ArgumentParser) -> None:
     add_capture_arguments(parser)
 
 
+def _add_supersample_pattern(p: argparse.ArgumentParser) -> None:
+    """``--supersample-pattern`` of ``eval`` and ``render`` (the patterns of
+    :data:`nerfbot.query.render.SUPERSAMPLE_PATTERNS`, named here so the parser needs no
+    torch)."""
+    p.add_argument("--supersample-pattern", default=None,
+                   choices=("grid", "corners", "adaptive"),
+                   help="where supersampled colour rays go: an S x S grid in each pixel; the "
+                        "pixel's centre and its 4 corners, shared with its neighbours (about 2 "
+                        "rays per pixel); or the corners, and the grid where centre and "
+                        "corners disagree (default: the run's option)")
+
+
 def build_parser(eager: bool = False) -> argparse.ArgumentParser:
     """The ``nerfbot`` parser. It imports no method, torch or mujoco: the ``capture`` command's
     arguments are added when that command is parsed or its help printed (at once with
@@ -1306,12 +1318,7 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
                         "area-averaged (the multiscale protocol; default 1)")
     p.add_argument("--supersample", type=_positive_int, default=None, metavar="S",
                    help="S x S rays per pixel for colour (default: what the run was trained with)")
-    p.add_argument("--supersample-pattern", default=None,
-                   choices=("grid", "corners", "adaptive"),
-                   help="where supersampled colour rays go: an S x S grid in each pixel; the "
-                        "pixel's centre and its 4 corners, shared with its neighbours (about 2 "
-                        "rays per pixel); or the corners, and the grid where centre and "
-                        "corners disagree (default: the run's option)")
+    _add_supersample_pattern(p)
     p.add_argument("--refine-poses", action="store_true",
                    help="refine each view's pose against the field first (iNeRF, 100 steps): "
                         "for views posed by structure from motion, whose errors are the poses'")
@@ -1431,12 +1438,7 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
     p.add_argument("--supersample", type=_positive_int, default=None, metavar="S",
                    help="S x S rays per pixel for colour (default: what the run was trained "
                         "with; 1 renders S^2 + 1 times fewer rays)")
-    p.add_argument("--supersample-pattern", default=None,
-                   choices=("grid", "corners", "adaptive"),
-                   help="where supersampled colour rays go: an S x S grid in each pixel; the "
-                        "pixel's centre and its 4 corners, shared with its neighbours (about 2 "
-                        "rays per pixel); or the corners, and the grid where centre and "
-                        "corners disagree (default: the run's option)")
+    _add_supersample_pattern(p)
     p.add_argument("--size", type=_image_side, nargs="+", default=None, metavar="N",
                    help="orbit image size N or W H (default: the training size)")
     p.add_argument("--depth-mode", default=None, choices=("expected", "median", "threshold"),

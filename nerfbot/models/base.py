@@ -49,6 +49,12 @@ def photometric_loss(rgb: torch.Tensor, target_rgb: torch.Tensor, rays_per_pixel
     return (err.mean(-1) * pixel_weights).mean()
 
 
+#: The colour span (max - min in some channel, colours in [0, 1]) of a pixel's centre and corner
+#: rays above which the "adaptive" supersampling pattern casts the S x S grid through it
+#: (:func:`nerfbot.query.render.render_image`; chosen in BENCHMARKS.md, section 7).
+ADAPTIVE_TOLERANCE = 0.2
+
+
 class Model(nn.Module, metaclass=abc.ABCMeta):
     """Common surface of every model: render rays, compute the training loss, upkeep."""
 
@@ -100,7 +106,7 @@ class Model(nn.Module, metaclass=abc.ABCMeta):
     supersample_pattern: str = "grid"
 
     #: The "adaptive" pattern's colour span above which a pixel gets the S x S grid.
-    adaptive_tolerance: float = 0.2
+    adaptive_tolerance: float = ADAPTIVE_TOLERANCE
 
     #: Rendering casts the S x S rays only through pixels whose 3 x 3 neighbourhood of centre-ray
     #: colours spans more than this (:func:`nerfbot.query.render.render_image`); 0: every pixel.

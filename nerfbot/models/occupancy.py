@@ -13,7 +13,7 @@ import torch
 from torch import nn
 
 from nerfbot.fields.base import Field
-from nerfbot.models.base import Model, photometric_loss
+from nerfbot.models.base import ADAPTIVE_TOLERANCE, Model, photometric_loss
 from nerfbot.ops.cameras import Rays
 from nerfbot.ops.contraction import disparity_distance
 from nerfbot.ops.losses import distortion_loss
@@ -122,7 +122,7 @@ class OccupancyModelConfig:
     more than ``adaptive_tolerance`` (:func:`nerfbot.query.render.render_image`). The
     default: on seven zoo scenes it renders in 0.4-0.6x the grid's time within 0.02 dB of
     its PSNR (BENCHMARKS.md, section 7). Training is unaffected."""
-    adaptive_tolerance: float = 0.2
+    adaptive_tolerance: float = ADAPTIVE_TOLERANCE
     """The "adaptive" pattern's test: a pixel gets the S x S grid when its centre and four
     corner colours span more than this (max - min in some channel, colours in [0, 1])."""
     supersample_from: float = 0.0

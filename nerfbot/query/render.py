@@ -160,7 +160,7 @@ def render_image(model: Model, cameras: Cameras, index: int, downscale: int = 1,
             out[key] = CORNER_CENTRE_WEIGHT * out[key] \
                 + (1.0 - CORNER_CENTRE_WEIGHT) * around.reshape(out[key].shape)
         if pattern == "adaptive":
-            tol = getattr(model, "adaptive_tolerance", 0.2) if adaptive_tolerance is None \
+            tol = model.adaptive_tolerance if adaptive_tolerance is None \
                 else float(adaptive_tolerance)
             c = corner["rgb"].reshape(h + 1, w + 1, 3)
             five = torch.stack([centre_rgb, c[:-1, :-1], c[:-1, 1:], c[1:, :-1], c[1:, 1:]])

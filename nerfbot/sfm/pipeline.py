@@ -312,17 +312,36 @@ def _skew(t: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
 
 
+def epipolar_errors_px(a_from_world: np.ndarray, b_from_world: np.ndarray, xa: np.ndarray,
+                       xb: np.ndarray, focal_px: float) -> np.ndarray:
+    """(M,) Sampson distances, in pixels, of matched points to the epipolar geometry of two
+    cameras: ``a_from_world``, ``b_from_world`` (3, 4) world-to-camera [R | t] (COLMAP's
+    convention), ``xa``, ``xb`` (M, 2) the matches in normalised image coordinates (lens
+    distortion removed), ``focal_px`` the focal length that scales them back to pixels."""
+    rot = b_from_world[:, :3] @ a_from_world[:, :3].T
+    essential = _skew(b_from_world[:, 3] - rot @ a_from_world[:, 3]) @ rot
+    ha, hb = np.c_[xa, np.ones(len(xa))], np.c_[xb, np.ones(len(xb))]
+    ea, eb = ha @ essential.T, hb @ essential
+    sampson = np.abs(np.sum(hb * ea, 1)) / np.sqrt(
+        ea[:, 0] ** 2 + ea[:, 1] ** 2 + eb[:, 0] ** 2 + eb[:, 1] ** 2 + 1e-300)
+    return sampson * focal_px
+
+
 def pose_agreement(rec: "pycolmap.Reconstruction", database: Path,
+                   verified: Optional[list] = None,
                    max_error_px: float = AGREEMENT_MAX_ERROR_PX) -> dict:
     """How far the verified matches between registered images agree with the recovered poses.
 
     A match agrees when its Sampson distance to the epipolar geometry of the two recovered
-    poses is under ``max_error_px`` (in normalised coordinates scaled by the focal length, so
-    lens distortion is removed first). A pair agrees when most of its verified matches do.
-    On a texture that repeats (a tiled or checkered surface), matches to the wrong copy of the
-    pattern agree with one another, verification keeps them, and views far apart get "verified"
-    pairs with a wrong geometry: few pairs then agree with any set of poses, and views may be
-    registered whole periods of the pattern away.
+    poses is under ``max_error_px`` (:func:`epipolar_errors_px`). A pair agrees when most of
+    its verified matches do. On a texture that repeats (a tiled or checkered surface),
+    matches to the wrong copy of the pattern agree with one another, verification keeps them,
+    and views far apart get "verified" pairs with a wrong geometry: few pairs then agree with
+    any set of poses, and views may be registered whole periods of the pattern away.
+
+    Args:
+        database: COLMAP's database of ``rec`` (the keypoints).
+        verified: :func:`verified_matches` of it, when already read.
 
     Returns:
         {"pairs": verified pairs between registered images, "pairs_agreeing": their share that
@@ -330,37 +349,28 @@ def pose_agreement(rec: "pycolmap.Reconstruction", database: Path,
         "max_error_px": the threshold}.
     """
     posed = {i: im for i, im in rec.images.items() if im.has_pose}
+    verified = verified_matches(database) if verified is None else verified
     db = pycolmap.Database.open(str(database))
     try:
-        pairs, geometries = db.read_two_view_geometries()
-        normalised = {}
-        for i, im in posed.items():
-            cam = rec.cameras[im.camera_id]
-            normalised[i] = np.asarray(cam.cam_from_img(
-                db.read_keypoints(i)[:, :2].astype(np.float64)), np.float64)
+        normalised = {i: np.asarray(rec.cameras[im.camera_id].cam_from_img(
+            db.read_keypoints(i)[:, :2].astype(np.float64)), np.float64)
+            for i, im in posed.items()}
     finally:
         db.close()
-    agreeing, shares, matched, right = 0, 0, 0, 0
-    for pair, geometry in zip(pairs, geometries):
-        a, b = pycolmap.pair_id_to_image_pair(pair)
-        m = geometry.inlier_matches
-        if a not in posed or b not in posed or not len(m):
+    agreeing, pairs, matched, right = 0, 0, 0, 0
+    for a, b, m in verified:
+        if a not in posed or b not in posed:
             continue
-        pa, pb = posed[a].cam_from_world(), posed[b].cam_from_world()
-        rot = pb.rotation.matrix() @ pa.rotation.matrix().T
-        essential = _skew(pb.translation - rot @ pa.translation) @ rot
-        x1 = np.c_[normalised[a][m[:, 0]], np.ones(len(m))]
-        x2 = np.c_[normalised[b][m[:, 1]], np.ones(len(m))]
-        e1, e2 = x1 @ essential.T, x2 @ essential
-        sampson = np.abs(np.sum(x2 * e1, 1)) / np.sqrt(
-            e1[:, 0] ** 2 + e1[:, 1] ** 2 + e2[:, 0] ** 2 + e2[:, 1] ** 2 + 1e-300)
-        focal = float(rec.cameras[posed[a].camera_id].mean_focal_length())
-        ok = sampson * focal < max_error_px
-        shares += 1
+        errors = epipolar_errors_px(
+            posed[a].cam_from_world().matrix(), posed[b].cam_from_world().matrix(),
+            normalised[a][m[:, 0]], normalised[b][m[:, 1]],
+            rec.cameras[posed[a].camera_id].mean_focal_length())
+        ok = errors < max_error_px
+        pairs += 1
         agreeing += int(ok.mean() > 0.5)
         matched += len(m)
         right += int(ok.sum())
-    return {"pairs": shares, "pairs_agreeing": agreeing / max(shares, 1),
+    return {"pairs": pairs, "pairs_agreeing": agreeing / max(pairs, 1),
             "matches_agreeing": right / max(matched, 1), "max_error_px": max_error_px}
 
 
@@ -437,7 +447,7 @@ def run_sfm(image_dir: Path, image_names: Sequence[str], work_dir: Path,
             rec, options.max_reproj_error_px, options.refine_rounds,
             refine_intrinsics=not known, threads=threads)
         seconds["refinement"] = time.perf_counter() - t
-    agreement = pose_agreement(rec, database)
+    agreement = pose_agreement(rec, database, verified)
     if agreement["pairs_agreeing"] < MIN_PAIRS_AGREEING:
         log.warning(
             "sfm: only %.0f %% of the verified image pairs agree with the recovered poses "
