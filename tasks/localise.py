@@ -43,12 +43,9 @@ from tasks.navigate import NAV_FIELD_OPTIONS, NavTaskConfig, World, ensure_train
 
 log = logging.getLogger(__name__)
 
-#: Estimators by name: (function, its config from the pose model and InerfConfig options).
-ESTIMATORS = {
-    "inerf": (inerf, lambda planar, options: InerfConfig(planar=planar, **options)),
-    "wide": (localise_wide, lambda planar, options: WideConfig(
-        planar=planar, refine=replace(WideConfig().refine, **options))),
-}
+#: Estimators by name: (function, its config class).
+ESTIMATORS = {"inerf": (inerf, InerfConfig), "wide": (localise_wide, WideConfig)}
+
 #: (translation m, rotation degrees) levels of the default basin sweep.
 DEFAULT_LEVELS = ((0.02, 1.0), (0.05, 3.0), (0.1, 10.0), (0.2, 15.0), (0.3, 20.0), (0.5, 30.0))
 #: Success: the estimate is this close to the true pose (metres, degrees).
@@ -71,22 +68,42 @@ def robot_views(world: World, cfg: NavTaskConfig, count: int, seed: int) -> list
 
 def estimator_config(name: str, planar: bool, options: dict | None = None):
     """The config of estimator ``name`` with the pose model ``planar`` and ``options``, fields
-    of :class:`~nerfbot.query.localise.InerfConfig` (the wide estimator's closing iNeRF);
-    ValueError naming an unknown field."""
+    of its config class (:class:`~nerfbot.query.localise.InerfConfig` or
+    :class:`~nerfbot.query.localise.WideConfig`); ValueError naming an unknown field."""
     options = dict(options or {})
-    known = {f.name for f in fields(InerfConfig)} - {"planar"}
+    config_class = ESTIMATORS[name][1]
+    known = {f.name for f in fields(config_class)} - {"planar"}
     unknown = sorted(set(options) - known)
     if unknown:
-        raise ValueError(f"--estimator-option: unknown {unknown}; choose from "
+        raise ValueError(f"--estimator-option: {name} has no {unknown}; choose from "
                          f"{', '.join(sorted(known))}")
-    return ESTIMATORS[name][1](planar, options)
+    return config_class(planar=planar, **options)
+
+
+def split_estimator_options(items, estimators) -> dict:
+    """``[(key, value)]`` of ``--estimator-option`` -> {estimator: {field: value}}: a key
+    ``NAME.FIELD`` goes to estimator NAME, a plain ``FIELD`` to every selected estimator whose
+    config has it; ValueError for a key no selected estimator takes."""
+    out: dict[str, dict] = {name: {} for name in estimators}
+    for key, value in items:
+        name, _, field_name = key.rpartition(".")
+        names = [name] if name else [e for e in estimators if field_name in
+                                     {f.name for f in fields(ESTIMATORS[e][1])}]
+        if not names or any(n not in out for n in names):
+            raise ValueError(f"--estimator-option {key}: no selected estimator "
+                             f"({', '.join(estimators)}) takes it")
+        for n in names:
+            out[n][field_name] = value
+    return out
 
 
 def run_basin(cfg: NavTaskConfig, views: int, levels, estimators, out: Path,
               planar: bool = False, estimator_options: dict | None = None) -> dict:
     """Every scene, view, level and estimator; returns the summary (also written to ``out``).
-    ``estimator_options`` change the estimators' iNeRF settings (:func:`estimator_config`)."""
-    configs = {name: estimator_config(name, planar, estimator_options) for name in estimators}
+    ``estimator_options`` maps an estimator's name to settings of its config
+    (:func:`estimator_config`)."""
+    configs = {name: estimator_config(name, planar, (estimator_options or {}).get(name))
+               for name in estimators}
     records = []
     for s in range(cfg.scenes):
         seed = cfg.seed + s
@@ -218,9 +235,10 @@ def main(argv=None) -> int:
                         help="field option of the training runs (repeatable), added to "
                         + ", ".join(f"{k}={v}" for k, v in NAV_FIELD_OPTIONS.items()))
     parser.add_argument("--estimator-option", action="append", default=[], type=parse_option,
-                        metavar="KEY=VALUE",
-                        help="iNeRF setting of the estimators (repeatable; InerfConfig fields, "
-                             "e.g. rays=1024 or across_rays=false)")
+                        metavar="[NAME.]KEY=VALUE",
+                        help="setting of the estimators' configs (repeatable): NAME.KEY for one "
+                             "estimator (inerf: InerfConfig, wide: WideConfig), KEY for every "
+                             "selected one that has it; e.g. inerf.rays=1024, keep=6")
     parser.add_argument("--cache", type=Path, default=None)
     parser.add_argument("--out", type=Path, default=Path("localise_out"))
     parser.add_argument("--device", default="cpu")
@@ -243,8 +261,9 @@ def main(argv=None) -> int:
     if args.cache is not None:
         cfg = replace(cfg, cache=args.cache)
     try:
+        options = split_estimator_options(args.estimator_option, estimators)
         summary = run_basin(cfg, args.views, args.levels, estimators, args.out, args.planar,
-                            dict(args.estimator_option))
+                            options)
     except (ValueError, FileNotFoundError, RuntimeError) as err:
         parser.exit(2, f"{parser.prog}: error: {err}\n")
     print(json.dumps(summary) if args.json else format_summary(summary))

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from nerfbot.query.localise import WideConfig
-from tasks.localise import estimator_config, main, plot_basin, robot_views, summarize
+from tasks.localise import (estimator_config, main, plot_basin, robot_views,
+                            split_estimator_options, summarize)
 from tasks.nav_map import true_floor_map
 from tasks.navigate import NavTaskConfig, World
 
@@ -50,7 +51,8 @@ def test_summary_rates_and_plot(tmp_path):
     (["--estimators", "magic"], "unknown"),
     (["--levels", "0.1"], "levels"),
     (["--views", "0"], "views"),
-    (["--estimator-option", "magic=1"], "estimator-option: unknown ['magic']"),
+    (["--estimator-option", "magic=1"], "estimator-option magic: no selected estimator"),
+    (["--estimator-option", "wide.rays=1"], "wide has no ['rays']"),
 ])
 def test_command_line_errors(args, message, tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_info:
@@ -59,9 +61,17 @@ def test_command_line_errors(args, message, tmp_path, capsys):
     assert message in capsys.readouterr().err
 
 
-def test_estimator_options_reach_both_estimators():
+def test_estimator_options_reach_their_estimators():
     inerf_cfg = estimator_config("inerf", True, {"across_rays": False, "rays": 256})
     assert inerf_cfg.planar and not inerf_cfg.across_rays and inerf_cfg.rays == 256
-    wide = estimator_config("wide", True, {"across_rays": False})
-    assert wide.planar and not wide.refine.across_rays
-    assert wide.refine.iterations == WideConfig().refine.iterations   # its own defaults kept
+    wide = estimator_config("wide", True, {"keep": 2})
+    assert wide.planar and wide.keep == 2
+    assert wide.rounds == WideConfig().rounds                  # its own defaults kept
+    with pytest.raises(ValueError, match="wide has no"):
+        estimator_config("wide", True, {"rays": 256})
+    options = split_estimator_options([("rays", 256), ("wide.keep", 3)], ["inerf", "wide"])
+    assert options == {"inerf": {"rays": 256}, "wide": {"keep": 3}}
+    with pytest.raises(ValueError, match="no selected estimator"):
+        split_estimator_options([("keep", 3)], ["inerf"])
+
+

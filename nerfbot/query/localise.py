@@ -8,12 +8,14 @@
   gradients are kept only across their rays (:func:`across_rays`): along a ray they are
   quadrature noise, which Adam's per-coordinate scaling would turn into steps along the view
   axis.
-- :func:`localise_wide`: widens the basin by comparing whole images at low resolution, blurred
-  (a Lucas-Kanade pyramid through the field): a grid of hypotheses around the guess is scored
-  by 16 x 16 renders without gradients; the guess and the best few descend together at
-  16 x 16, the best two of them at 32 x 32; of these two and the guess itself, the one whose
-  colours fit best at full resolution starts an iNeRF run. Its cost is about one 16 x 16
-  render per hypothesis, the descents, and one iNeRF run.
+- :func:`localise_wide`: widens the basin by comparing whole images, blurred, and by direct
+  image alignment (:mod:`nerfbot.query.direct_alignment`): a grid of hypotheses around the
+  guess is scored by 16 x 16 renders; from the guess and the best few, the observed image is
+  aligned to a 32 x 32 render by Gauss-Newton through the render's depth; the candidate whose
+  colours fit best at full resolution is refined by rounds of rendering a reference at the
+  estimate (64 x 64, then full resolution) and aligning to it again. No round descends
+  through the field, so every pixel takes part at each step; its cost is the renders (about
+  one 16 x 16 render per hypothesis, a 32 x 32 one per start, and one per round).
 
 The pose update is one of two models (``planar`` in the configs):
 
@@ -40,6 +42,8 @@ import torch.nn.functional as F
 from nerfbot.ops.alignment import rotation_angle_deg
 from nerfbot.ops.cameras import Rays, pixel_rays
 from nerfbot.ops.lie import se3_exp
+from nerfbot.query.direct_alignment import (AlignConfig, align, blur, level_size,
+                                            render_reference)
 
 
 def pose_error(c2w: np.ndarray, reference: np.ndarray) -> tuple[float, float]:
@@ -221,19 +225,6 @@ def _descend(model, obs: _Observation, c2w0: torch.Tensor, iterations: int, rays
     return refined, losses
 
 
-def _gaussian_blur(img: torch.Tensor, sigma: float) -> torch.Tensor:
-    """(K, C, H, W) images blurred by a separable Gaussian of ``sigma`` pixels (edges
-    replicated)."""
-    r = max(1, int(math.ceil(2.5 * sigma)))
-    x = torch.arange(-r, r + 1, dtype=img.dtype, device=img.device)
-    k = torch.exp(-0.5 * (x / sigma) ** 2)
-    k = k / k.sum()
-    c = img.shape[1]
-    out = F.pad(img, (r, r, r, r), mode="replicate")
-    out = F.conv2d(out, k.view(1, 1, 1, -1).repeat(c, 1, 1, 1), groups=c)
-    return F.conv2d(out, k.view(1, 1, -1, 1).repeat(c, 1, 1, 1), groups=c)
-
-
 class _LowRes:
     """The observed image area-averaged to ``res`` x ``res`` pixels and blurred by ``sigma``
     of them, and the whole-image photometric error of poses rendered at that resolution."""
@@ -241,7 +232,7 @@ class _LowRes:
     def __init__(self, model, obs: _Observation, res: int, sigma: float):
         self.model, self.res, self.sigma = model, res, sigma
         small = cv2.resize(obs.rgb.cpu().numpy(), (res, res), interpolation=cv2.INTER_AREA)
-        self.target = _gaussian_blur(
+        self.target = blur(
             torch.as_tensor(small, device=obs.device).permute(2, 0, 1)[None], sigma)
         self.sx, self.sy = res / obs.w, res / obs.h
         v, u = torch.meshgrid(torch.arange(res, dtype=torch.float32, device=obs.device),
@@ -256,11 +247,9 @@ class _LowRes:
         rays = pixel_rays(c2w.repeat_interleave(n, 0), o.fx * self.sx, o.fy * self.sy,
                           o.cx * self.sx, o.cy * self.sy, self.px.repeat(k), self.py.repeat(k),
                           1 / self.sx, 1 / self.sy)
-        if o.config.across_rays:
-            rays = across_rays(rays)
         rgb = self.model.render_rays_differentiable(rays).rgb
         rgb = rgb.reshape(k, self.res, self.res, 3).permute(0, 3, 1, 2)
-        return ((_gaussian_blur(rgb, self.sigma) - self.target) ** 2).mean((1, 2, 3))
+        return ((blur(rgb, self.sigma) - self.target) ** 2).mean((1, 2, 3))
 
 
 class _Frozen:
@@ -315,22 +304,29 @@ class WideConfig:
         translation: the hypothesis grid spans +-this around the guess along each moved axis,
             metres (3 steps per axis: -, 0, +).
         rotation: and +-this about each turned axis, degrees (5 steps: -, -/2, 0, +/2, +).
-        keep: hypotheses that descend at the coarsest level (the guess and the best scored).
-        finalists: the starts kept after each stage (lowest error at that stage); of them and
-            the guess, the one with the lowest full-resolution error starts the closing iNeRF.
-        levels: (resolution, blur sigma in pixels of it, iterations, Adam rate) of each
-            whole-image stage, coarse to fine.
-        refine: the closing iNeRF's settings (its ``planar`` is ignored: the estimator's
-            applies); iNeRF's own defaults.
+        score_resolution, score_sigma: the hypotheses are scored by renders of this many
+            pixels a side, blurred by this many of them.
+        keep: starts aligned to their own reference render (the guess and the best scored).
+        finalists: of the aligned starts and the guess, this many (the lowest colour errors
+            at full resolution) go through the refinement rounds; the best at the end wins.
+        start_scale: the starts' reference renders, a fraction of the image's resolution.
+        start_levels: the pyramid the starts align over (fractions of the image's resolution).
+        rounds: (reference scale, pyramid levels) of each refinement round, coarse to fine:
+            a reference rendered at the estimate, the image aligned to it.
+        align: the Gauss-Newton settings of every level.
         planar: the ground-robot pose model (module docstring).
     """
 
     translation: float = 0.2
     rotation: float = 16.0
+    score_resolution: int = 16
+    score_sigma: float = 1.0
     keep: int = 4
-    finalists: int = 2
-    levels: tuple = ((16, 1.0, 30, 0.03), (32, 1.0, 25, 0.01))
-    refine: InerfConfig = InerfConfig()
+    finalists: int = 1
+    start_scale: float = 0.25
+    start_levels: tuple = (0.125, 0.25)
+    rounds: tuple = ((0.5, (0.25, 0.5)), (1.0, (0.5, 1.0)))
+    align: AlignConfig = AlignConfig()
     planar: bool = False
 
 
@@ -355,40 +351,51 @@ def _hypotheses(config: WideConfig) -> torch.Tensor:
 
 def localise_wide(model, image: np.ndarray, intrinsics, c2w_init: np.ndarray,
                   config: WideConfig = WideConfig(), seed: int = 0) -> PoseEstimate:
-    """The wide estimator (see the module docstring); same arguments as :func:`inerf`."""
+    """The wide estimator (see the module docstring); same arguments as :func:`inerf`.
+    ``losses`` holds each finalist's last alignment cost."""
     t0 = time.perf_counter()
     device = model.aabb.device
-    obs = _Observation(image, intrinsics, config.refine, torch.Generator().manual_seed(seed),
-                       device)
+    obs = _Observation(image, intrinsics, InerfConfig(interest=False),
+                       torch.Generator().manual_seed(seed), device)
     guess = torch.as_tensor(np.asarray(c2w_init, np.float32), device=device)[None]
-    with _Frozen(model):
-        coarse = _LowRes(model, obs, *config.levels[0][:2])
+    parameters = 3 if config.planar else 6
+
+    def update(start: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+        return _update(start[None], q[None], config.planar)[0]
+
+    def aligned(start: torch.Tensor, scale: float, levels) -> tuple[torch.Tensor, float]:
+        reference = render_reference(model, start, intrinsics, level_size(obs.w, obs.h, scale),
+                                     scale)
+        return align(reference, obs.rgb, intrinsics, start, update, parameters, levels,
+                     config.align)
+
+    with _Frozen(model), torch.no_grad():
+        coarse = _LowRes(model, obs, config.score_resolution, config.score_sigma)
         hypotheses = _hypotheses(config).to(device)
         candidates = _update(guess.expand(len(hypotheses), 4, 4), hypotheses, config.planar)
-        with torch.no_grad():
-            scores = torch.cat([coarse(chunk) for chunk in torch.split(candidates, 16)])
-        # the guess itself always descends: blurred low-resolution scores can prefer a wrong
+        scores = torch.cat([coarse(chunk) for chunk in torch.split(candidates, 16)])
+        # the guess itself always starts: blurred low-resolution scores can prefer a wrong
         # hypothesis in a view with little texture
         order = [0] + [int(i) for i in torch.argsort(scores) if int(i) != 0]
-        c2w = candidates[order[:config.keep]]
-        for res, sigma, iterations, lr in config.levels:
-            stage = _LowRes(model, obs, res, sigma)
-            c2w, last, _ = _adam(c2w, config.planar, iterations, lr, stage)
-            c2w = c2w[torch.argsort(last)[:config.finalists]]
-        # the finalists and the guess itself (plain iNeRF's start: the low-resolution renders
-        # alias, and their optimum can lie a few degrees off a good guess) are judged at full
-        # resolution, and iNeRF descends from the best: the pyramid leaves its finalists a few
-        # centimetres and degrees off, where iNeRF converges
-        c2w = torch.cat([guess, c2w])
+        starts = [aligned(candidates[i], config.start_scale, config.start_levels)[0]
+                  for i in order[:config.keep]]
+        # the aligned starts and the guess itself (a low-resolution alignment can pull a good
+        # guess a few degrees off) are judged by the field's colours at full resolution
+        c2w = torch.cat([guess, torch.stack(starts)])
         pixels = _evaluation_pixels(obs, 1024, seed)
-        with torch.no_grad():
-            start = c2w[int(torch.argmin(_photometric(model, obs, c2w, *pixels)))][None]
-        c2w, losses = _descend(model, obs, start, config.refine.iterations, config.refine.rays,
-                               config.refine.lr, config.planar)
-        with torch.no_grad():
-            final = float(_photometric(model, obs, c2w, *pixels)[0])
-    return PoseEstimate(c2w[0].cpu().numpy().astype(float), final, time.perf_counter() - t0,
-                        losses)
+        order = torch.argsort(_photometric(model, obs, c2w, *pixels))[:config.finalists]
+        finals, costs = [], []
+        for pose in c2w[order]:
+            for scale, levels in config.rounds:
+                pose, cost = aligned(pose, scale, levels)
+            finals.append(pose)
+            costs.append(cost)
+        finals = torch.stack(finals)
+        errors = _photometric(model, obs, finals, *pixels)
+        best = int(torch.argmin(errors))
+        pose, final = finals[best], float(errors[best])
+    return PoseEstimate(pose.cpu().numpy().astype(float), final, time.perf_counter() - t0,
+                        costs)
 
 
 def perturb(c2w: np.ndarray, translation: float, rotation_deg: float,
