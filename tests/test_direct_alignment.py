@@ -43,9 +43,9 @@ def test_pixel_jacobian_matches_finite_differences(update, parameters):
     for k in range(parameters):
         step = torch.zeros(parameters)
         step[k] = eps
-        plus = torch.stack(level.project(update(start.double(), (q + step).double()).float())[:2], -1)
-        minus = torch.stack(level.project(update(start.double(), (q - step).double()).float())[:2],
-                            -1)
+        plus, minus = (torch.stack(level.project(
+            update(start.double(), (q + sign * step).double()).float())[:2], -1)
+            for sign in (1, -1))
         numeric = (plus - minus) / (2 * eps)
         assert torch.allclose(jac[:, :, k], numeric, rtol=2e-2, atol=2e-2), k
 

@@ -26,7 +26,7 @@ import torch.nn.functional as F
 
 from nerfbot.ops.cameras import pixel_rays
 
-#: A pose update: (start (4, 4), parameters (P,)) -> pose (4, 4), differentiable (forward mode).
+#: A pose update: (start (4, 4), parameters (P,)) -> pose (4, 4), in the dtype of its inputs.
 PoseUpdate = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
 
@@ -89,8 +89,10 @@ def render_reference(model, c2w: torch.Tensor, intrinsics, size: tuple[int, int]
     w, h = size
     px, py = level_pixels(w, h, c2w.device)
     rays = pixel_rays(c2w, fx, fy, cx, cy, px, py, 1 / scale, 1 / scale)
-    parts = [model.render_rays_differentiable(rays[i:i + chunk]) for i in range(0, len(rays), chunk)]
-    rgb, z, opacity = (torch.cat([getattr(p, k) for p in parts]) for k in ("rgb", "z_depth", "opacity"))
+    parts = [model.render_rays_differentiable(rays[i:i + chunk])
+             for i in range(0, len(rays), chunk)]
+    rgb, z, opacity = (torch.cat([getattr(p, k) for p in parts])
+                       for k in ("rgb", "z_depth", "opacity"))
     return Reference(c2w, rgb.reshape(h, w, 3), z.reshape(h, w), opacity.reshape(h, w), scale)
 
 

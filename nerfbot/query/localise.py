@@ -37,7 +37,6 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from nerfbot.ops.alignment import rotation_angle_deg
 from nerfbot.ops.cameras import Rays, pixel_rays
@@ -100,7 +99,8 @@ class InerfConfig:
 @dataclass
 class PoseEstimate:
     """The estimated camera-to-world pose (4, 4), the final photometric MSE on a fixed set of
-    pixels, the seconds it took and the mean batch MSE at every iteration."""
+    pixels, the seconds it took, and ``losses``: iNeRF's mean batch MSE at every iteration,
+    or the wide estimator's last alignment cost of each finalist."""
 
     c2w: np.ndarray
     loss: float
