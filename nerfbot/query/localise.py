@@ -41,8 +41,8 @@ import torch
 from nerfbot.ops.alignment import rotation_angle_deg
 from nerfbot.ops.cameras import Rays, pixel_rays
 from nerfbot.ops.lie import se3_exp
-from nerfbot.query.direct_alignment import (AlignConfig, align, blur, level_size,
-                                            render_reference)
+from nerfbot.query.direct_alignment import (AlignConfig, align, blur, level_pixels,
+                                            level_size, render_reference)
 
 
 def pose_error(c2w: np.ndarray, reference: np.ndarray) -> tuple[float, float]:
@@ -235,10 +235,7 @@ class _LowRes:
         self.target = blur(
             torch.as_tensor(small, device=obs.device).permute(2, 0, 1)[None], sigma)
         self.sx, self.sy = res / obs.w, res / obs.h
-        v, u = torch.meshgrid(torch.arange(res, dtype=torch.float32, device=obs.device),
-                              torch.arange(res, dtype=torch.float32, device=obs.device),
-                              indexing="ij")
-        self.px, self.py = u.reshape(-1) + 0.5, v.reshape(-1) + 0.5
+        self.px, self.py = level_pixels(res, res, obs.device)
         self.obs = obs
 
     def __call__(self, c2w: torch.Tensor) -> torch.Tensor:
