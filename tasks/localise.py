@@ -230,6 +230,10 @@ def main(argv=None) -> int:
     parser.add_argument("--planar", action="store_true",
                         help="perturb and estimate (x, y, yaw) only, as a ground robot's pose")
     parser.add_argument("--train-steps", type=int, default=NavTaskConfig.train_steps)
+    parser.add_argument("--capture-robot-views", type=float,
+                        default=NavTaskConfig.capture_robot_views,
+                        help="share of the capture's training views taken by the robot's camera "
+                             "(0-1; the rest from the room's rig)")
     parser.add_argument("--option", action="append", default=[], type=parse_option,
                         metavar="KEY=VALUE",
                         help="field option of the training runs (repeatable), added to "
@@ -252,10 +256,13 @@ def main(argv=None) -> int:
     for name in ("scenes", "views", "train_steps"):
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be at least 1")
+    if not 0.0 <= args.capture_robot_views <= 1.0:
+        parser.error(f"--capture-robot-views must be in [0, 1], got {args.capture_robot_views}")
     if args.out.exists() and any(args.out.iterdir()):
         parser.error(f"--out {args.out} is not empty: choose a new folder")
     cfg = NavTaskConfig(scene=args.scene, scenes=args.scenes, seed=args.seed,
                         train_steps=args.train_steps, device=args.device,
+                        capture_robot_views=args.capture_robot_views,
                         train_options={**NAV_FIELD_OPTIONS, **dict(args.option)},
                         progress=not args.no_progress)
     if args.cache is not None:

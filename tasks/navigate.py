@@ -62,7 +62,7 @@ from nerfbot.train.runs import load_model
 from nerfbot.train.trainer import TrainConfig, Trainer
 from sims.camera import CaptureCamera
 from sims.capture import capture, set_lighting
-from sims.rigs import default_rig, make_test_rig
+from sims.rigs import default_rig, make_test_rig, rig_poses
 from sims.robot import (RobotConfig, add_robot, robot_ids, robot_pose, set_robot_pose)
 from sims.scene import CAPTURE_CAMERA, resolve_scene
 from sims.sensor import DepthSensorModel
@@ -102,6 +102,12 @@ class NavTaskConfig:
     capture_views: int = 400
     """Training views of a room: 150 leave a 7 x 5.6 m room sparse enough for the field to fit
     them with fog (BENCHMARKS.md, section 9)."""
+    capture_robot_views: float = 0.5
+    """Share of the training views taken by the robot's own camera (its height, pitch and field
+    of view) at base poses drawn uniformly over the floor it can stand on, as a robot exploring
+    the room would record them; the rest come from the room's ``inside`` rig (0.4-1.6 m high,
+    0.3 m from obstacles). The robot's views are what localisation later sees, and the only
+    ones closer to furniture than the rig's clearance (BENCHMARKS.md, section 9)."""
     capture_test_views: int = 10
     capture_size: int = 128
     train_steps: int = 2000
@@ -135,19 +141,74 @@ class NavTaskConfig:
 
 # ------------------------------------------------------------------------------ data and field
 def scene_folder(cfg: NavTaskConfig, seed: int) -> Path:
-    return Path(cfg.cache) / f"{cfg.scene}-{seed}" / f"{cfg.capture_size}px-{cfg.capture_views}v"
+    robot = round(100 * cfg.capture_robot_views)
+    views = f"{cfg.capture_views}v" + (f"-robot{robot}" if robot else "")
+    return Path(cfg.cache) / f"{cfg.scene}-{seed}" / f"{cfg.capture_size}px-{views}"
+
+
+def robot_camera_pose(robot: RobotConfig, pose) -> np.ndarray:
+    """(4, 4) c2w (OpenGL) of the robot's camera when the base is at (x, y, yaw)."""
+    x, y, yaw = (float(v) for v in pose)
+    pitch = np.radians(robot.camera_pitch)
+    forward = np.array([np.cos(yaw) * np.cos(pitch), np.sin(yaw) * np.cos(pitch),
+                        -np.sin(pitch)])
+    up = np.array([np.cos(yaw) * np.sin(pitch), np.sin(yaw) * np.sin(pitch), np.cos(pitch)])
+    c2w = np.eye(4)
+    c2w[:3, 0] = np.cross(forward, up)
+    c2w[:3, 1] = up
+    c2w[:3, 2] = -forward
+    c2w[:3, 3] = [x, y, robot.camera_height]
+    return c2w
+
+
+def robot_capture_poses(cfg: NavTaskConfig, scene: str, count: int, seed: int) -> list:
+    """``count`` c2w poses of the robot's camera at base poses uniform over the cells of the
+    true floor map the base fits in (``radius + margin`` from obstacles), random yaw, seeded."""
+    world = World(scene, cfg)
+    try:
+        floor = true_floor_map(world.model, world.data, cfg.body, cfg.map_cell)
+    finally:
+        world.close()
+    free = np.argwhere(floor.free_for(cfg.robot.radius + cfg.margin))
+    if len(free) == 0:
+        raise ValueError(f"{scene}: no floor cell fits the robot (radius {cfg.robot.radius} m)")
+    rng = np.random.default_rng([seed, 7919])
+    cells = free[rng.choice(len(free), size=count, replace=len(free) < count)]
+    jitter = rng.uniform(-0.5, 0.5, size=(count, 2)) * cfg.map_cell
+    xy = floor.to_world(cells) + jitter
+    yaw = rng.uniform(-np.pi, np.pi, size=count)
+    return [robot_camera_pose(cfg.robot, (x, y, a)) for (x, y), a in zip(xy, yaw)]
 
 
 def ensure_capture(cfg: NavTaskConfig, seed: int) -> Path:
-    """The room's capture from inside (RGB, depth, segmentation, sensor depth), made if missing."""
-    out = scene_folder(cfg, seed) / "data"
+    """The room's capture from inside (RGB, depth, segmentation, sensor depth), made if missing:
+    :attr:`NavTaskConfig.capture_robot_views` of the training views from the robot's camera,
+    the rest and the test views from the room's rig."""
+    folder = scene_folder(cfg, seed)
+    out = folder / "data"
     if (out / "transforms.json").exists():
         return out
+    if not 0.0 <= cfg.capture_robot_views <= 1.0:
+        raise ValueError(f"capture_robot_views must be in [0, 1], got {cfg.capture_robot_views}")
     name = f"{cfg.scene}:{seed}"
     rig = default_rig(name, count=cfg.capture_views, width=cfg.capture_size,
                       height=cfg.capture_size, seed=seed)
-    capture(name, rig, make_test_rig(rig, cfg.capture_test_views), out, progress=cfg.progress,
-            sensor=DepthSensorModel(seed=seed))
+    test_rig = make_test_rig(rig, cfg.capture_test_views)
+    robot = round(cfg.capture_robot_views * cfg.capture_views)
+    if robot:
+        if abs(rig.fov_deg - cfg.robot.camera_fovy) > 1e-6:
+            raise ValueError(f"{name}: the room rig's field of view ({rig.fov_deg} deg) is not "
+                             f"the robot camera's ({cfg.robot.camera_fovy} deg); a capture "
+                             "holds one camera")
+        from_rig = cfg.capture_views - robot
+        train = rig_poses(replace(rig, count=from_rig)) if from_rig else []
+        train += robot_capture_poses(cfg, name, robot, seed)
+        poses_file = folder / "capture_poses.json"
+        write_json_atomic(poses_file, {"train": [p.tolist() for p in train],
+                                       "test": [p.tolist() for p in rig_poses(test_rig)]})
+        rig = replace(rig, kind="explicit", poses_file=poses_file, count=0)
+        test_rig = make_test_rig(rig, cfg.capture_test_views)
+    capture(name, rig, test_rig, out, progress=cfg.progress, sensor=DepthSensorModel(seed=seed))
     return out
 
 
@@ -198,17 +259,7 @@ class World:
 
     def camera_pose(self, pose) -> np.ndarray:
         """(4, 4) c2w (OpenGL) of the robot's camera when the base is at (x, y, yaw)."""
-        x, y, yaw = (float(v) for v in pose)
-        pitch = np.radians(self.robot.camera_pitch)
-        forward = np.array([np.cos(yaw) * np.cos(pitch), np.sin(yaw) * np.cos(pitch),
-                            -np.sin(pitch)])
-        up = np.array([np.cos(yaw) * np.sin(pitch), np.sin(yaw) * np.sin(pitch), np.cos(pitch)])
-        c2w = np.eye(4)
-        c2w[:3, 0] = np.cross(forward, up)
-        c2w[:3, 1] = up
-        c2w[:3, 2] = -forward
-        c2w[:3, 3] = [x, y, self.robot.camera_height]
-        return c2w
+        return robot_camera_pose(self.robot, pose)
 
     def observe(self) -> np.ndarray:
         """The robot camera's RGB image now (H, W, 3) uint8."""
@@ -558,6 +609,10 @@ def main(argv=None) -> int:
     parser.add_argument("--train-steps", type=int, default=NavTaskConfig.train_steps)
     parser.add_argument("--capture-views", type=int, default=NavTaskConfig.capture_views)
     parser.add_argument("--capture-size", type=int, default=NavTaskConfig.capture_size)
+    parser.add_argument("--capture-robot-views", type=float,
+                        default=NavTaskConfig.capture_robot_views,
+                        help="share of the training views taken by the robot's camera (0-1; "
+                             "the rest from the room's rig)")
     parser.add_argument("--option", action="append", default=[], type=parse_option,
                         metavar="KEY=VALUE",
                         help="field option of the training runs (repeatable), added to "
@@ -582,9 +637,12 @@ def main(argv=None) -> int:
     for name in ("scenes", "train_steps", "capture_views", "capture_size"):
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be at least 1")
+    if not 0.0 <= args.capture_robot_views <= 1.0:
+        parser.error(f"--capture-robot-views must be in [0, 1], got {args.capture_robot_views}")
     cfg = NavTaskConfig(scene=args.scene, scenes=args.scenes, trials=args.trials, seed=args.seed,
                         map=args.map, pose=args.pose, train_steps=args.train_steps,
                         capture_views=args.capture_views, capture_size=args.capture_size,
+                        capture_robot_views=args.capture_robot_views,
                         threshold=args.threshold, map_floor_clearance=args.floor_clearance,
                         out=args.out, device=args.device,
                         train_options={**NAV_FIELD_OPTIONS, **dict(args.option)},

@@ -75,3 +75,39 @@ def test_estimator_options_reach_their_estimators():
         split_estimator_options([("keep", 3)], ["inerf"])
 
 
+
+
+def test_navigation_capture_mixes_the_rooms_rig_and_the_robots_camera(tmp_path):
+    """Half the training views from the robot's camera (its height and pitch, on floor the base
+    fits on), half and the test views from the room's rig; the folder says so."""
+    import json
+
+    from tasks.navigate import ensure_capture, robot_camera_pose, scene_folder
+
+    cfg = NavTaskConfig(capture_size=32, capture_views=8, capture_test_views=2,
+                        capture_robot_views=0.5, cache=tmp_path, progress=False)
+    assert scene_folder(cfg, 0).name == "32px-8v-robot50"
+    assert scene_folder(NavTaskConfig(capture_robot_views=0.0), 0).name == "128px-400v"
+    data = ensure_capture(cfg, 0)
+    meta = json.loads((data / "transforms.json").read_text())
+    pose = {f["file_path"]: np.array(f["transform_matrix"]) for f in meta["frames"]}
+    train = [pose[name] for name in meta["train_filenames"]]
+    test = [pose[name] for name in meta["test_filenames"]]
+    assert len(train) == 8 and len(test) == 2
+    robot_height = cfg.robot.camera_height
+    at_robot = [p for p in train if abs(p[2, 3] - robot_height) < 1e-6]
+    assert len(at_robot) == 4
+    world = World("room:0", cfg)
+    try:
+        gt = true_floor_map(world.model, world.data, cfg.body, cfg.map_cell)
+    finally:
+        world.close()
+    fits = gt.free_for(cfg.robot.radius)
+    for c2w in at_robot:
+        i, j = gt.to_cell(c2w[:2, 3])
+        assert fits[i, j]
+        yaw = np.arctan2(-c2w[1, 2], -c2w[0, 2])       # the camera looks along -z
+        expected = robot_camera_pose(cfg.robot, (c2w[0, 3], c2w[1, 3], yaw))
+        np.testing.assert_allclose(c2w, expected, atol=1e-6)
+    rig_heights = [p[2, 3] for p in train if abs(p[2, 3] - robot_height) >= 1e-6]
+    assert len(rig_heights) == 4 and all(0.4 <= z <= 1.6 for z in rig_heights)

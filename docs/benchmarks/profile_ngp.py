@@ -16,12 +16,19 @@ losses, backward, and the optimiser. Timers synchronise nothing (CPU
 only) and add one `perf_counter` pair per call.
 
 The bound: a step that trains on M samples must at least (a) run the MLPs' FLOPs forward and
-backward (3x the forward's) for them, at the measured rate of a (M, 64) x (64, 64) matmul, and
+backward (3x the forward's) for them, at the measured rate of a (M, 64) x (64, 64) matmul,
 (b) stream the Adam state of every parameter (parameters, gradients and two moments read, three
-written) at the measured copy bandwidth. The hash encoding's gathers and scatters are left out
-of the bound (random access into 16 tables of 1 MB each; their share shows in the phases). The
-rates are the best of five timings, measured in the same run. Run alone: two processes on two
-cores halve each other's rate.
+written) at the measured copy bandwidth, and (c) read the hash-table rows of every sample's 8
+cell corners on every level, and add into them in the backward pass: the memory floor of the
+encoding. (c) is timed on the rows of the last timed step's own points (every hash-encoding call
+that step made with autograd on), by two kernels that do nothing but those reads (a sum of the 8
+rows) and those read-modify-writes (an add into them), in the encoding kernels' level-major,
+one-level-per-worker order; the row indices are computed beforehand, untimed. The report gives
+the step's ratio to the whole bound and to (a) + (b) alone. The
+rates are the best of five timings, taken three times in the same run (before the warm-up,
+before the timed steps and after them) and the best of the three kept: a virtual machine's
+rates drift by tens of percent within minutes, and the bound is the machine at its best. Run
+alone: two processes on two cores halve each other's rate.
 """
 
 from __future__ import annotations
@@ -33,12 +40,16 @@ import time
 from collections import defaultdict
 from pathlib import Path
 
+import numpy as np
 import torch
+from numba import njit, prange
 
 from nerfbot.app.cli import parse_option
 from nerfbot.data import load_dataset
 from nerfbot.eval.evaluation import evaluate
+from nerfbot.kernels.hashgrid import _cell, _corner_rows, _level
 from nerfbot.models import occupancy as occupancy_module
+from nerfbot.ops.runtime import keep_freed_memory
 from nerfbot.train.trainer import TrainConfig, Trainer, batch_loss
 
 
@@ -112,6 +123,76 @@ def copy_gbps(mb: int = 256) -> float:
     return _best_rate(2 * src.numel() * 4 / 1e9, lambda: dst.copy_(src))
 
 
+def machine_rates(best: dict | None = None) -> dict:
+    """The three rates of the bound, each the best of this measurement and ``best``'s."""
+    rates = {"matmul_gflops": matmul_gflops(), "mlp_shape_gflops": mlp_like_gflops(),
+             "copy_gbps": copy_gbps()}
+    return {k: max(v, (best or {}).get(k, 0.0)) for k, v in rates.items()}
+
+
+@njit(parallel=True, cache=True)
+def _corner_table_rows(x, offsets, res, rows):
+    """(L, N, 8) int64 absolute table rows of every point's cell corners on every level."""
+    for lvl in prange(res.shape[0]):
+        r, rf, res1, off, size, dense = _level(res, offsets, lvl)
+        for n in range(x.shape[0]):
+            ix, iy, iz, _, _, _ = _cell(x, n, rf, r)
+            corners = _corner_rows(ix, iy, iz, res1, size - 1, dense)
+            for c in range(8):
+                rows[lvl, n, c] = off + corners[c]
+
+
+@njit(parallel=True, fastmath=True, cache=True)
+def _gather_rows(rows, table, out, n_threads):
+    """out[l, n] = sum of the 8 rows: the forward pass's reads and nothing else."""
+    n_levels, n_points = rows.shape[0], rows.shape[1]
+    for tid in prange(n_threads):
+        for lvl in range(tid, n_levels, n_threads):
+            for n in range(n_points):
+                a0 = np.float32(0.0)
+                a1 = np.float32(0.0)
+                for c in range(8):
+                    a0 += table[rows[lvl, n, c], 0]
+                    a1 += table[rows[lvl, n, c], 1]
+                out[lvl, n, 0] = a0
+                out[lvl, n, 1] = a1
+
+
+@njit(parallel=True, fastmath=True, cache=True)
+def _scatter_rows(rows, grad, table_grad, n_threads):
+    """table_grad[row] += grad[l, n] for the 8 rows: the backward pass's read-modify-writes."""
+    n_levels, n_points = rows.shape[0], rows.shape[1]
+    for tid in prange(n_threads):
+        for lvl in range(tid, n_levels, n_threads):
+            for n in range(n_points):
+                g0 = grad[lvl, n, 0]
+                g1 = grad[lvl, n, 1]
+                for c in range(8):
+                    table_grad[rows[lvl, n, c], 0] += g0
+                    table_grad[rows[lvl, n, c], 1] += g1
+
+
+def hash_memory_floor_ms(encoding, calls: list) -> float:
+    """Milliseconds of the encoding's bare row reads and read-modify-writes for the points of
+    ``calls`` (each an (N, 3) array of positions in [0, 1]^3 given to the encoding), the best of
+    five timings of each."""
+    if encoding.n_features != 2:
+        raise SystemExit("the hash memory floor is written for 2 features per level")
+    offsets, res = encoding._offsets_np, encoding._res_np
+    table = encoding.table.detach().numpy()
+    threads = torch.get_num_threads()
+    total = 0.0
+    for x in calls:
+        rows = np.empty((len(res), len(x), 8), np.int64)
+        _corner_table_rows(np.ascontiguousarray(x, np.float32), offsets, res, rows)
+        out = np.empty((len(res), len(x), 2), np.float32)
+        grad_table = np.zeros_like(table)
+        for kernel, args in ((_gather_rows, (rows, table, out, threads)),
+                             (_scatter_rows, (rows, out, grad_table, threads))):
+            total += 1.0 / _best_rate(1.0, lambda: kernel(*args), repeats=3)
+    return 1e3 * total
+
+
 def mlp_flops_per_sample(model) -> float:
     """Forward FLOPs of the density and colour MLPs for one sample (2 per multiply-add)."""
     total = 0
@@ -122,6 +203,7 @@ def mlp_flops_per_sample(model) -> float:
 
 
 def main() -> None:
+    keep_freed_memory()  # as `nerfbot train` does
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("data")
     p.add_argument("--warmup-steps", type=int, default=300)
@@ -139,6 +221,7 @@ def main() -> None:
 
 
 def profile(args, out: Path) -> None:
+    rates = machine_rates()
     ds = load_dataset(args.data)
     options = {"samples_per_batch": args.samples, **dict(args.option)}
     trainer = Trainer(ds, out, TrainConfig(method="ngp", max_steps=args.warmup_steps,
@@ -156,6 +239,14 @@ def profile(args, out: Path) -> None:
     timer.wrap(occupancy_module, "distortion_loss", "distortion loss")
     timer.wrap(occupancy_module, "render_weights", "transmittance (no grad)")
 
+    encoded = []          # positions given to the hash encoding with autograd on, this step
+
+    def record_positions(module, inputs):
+        if torch.is_grad_enabled():
+            encoded.append(inputs[0].detach().clamp(0.0, 1.0).numpy().copy())
+
+    hook = model.field.encoding.register_forward_pre_hook(record_positions)
+    rates = machine_rates(rates)
     model.train()
     density_only, kept, rays, full_march_steps = 0, 0, 0, 0
     in_rounds = False
@@ -181,6 +272,7 @@ def profile(args, out: Path) -> None:
     n_rays = trainer.n_rays
     last = trainer.last_samples
     for i in range(args.steps):
+        encoded.clear()
         t0 = time.perf_counter()
         progress = (args.warmup_steps + i) / (args.warmup_steps + args.steps)
         full_march_steps += bool(model.train_full_march)
@@ -200,6 +292,7 @@ def profile(args, out: Path) -> None:
         rays += n_rays
         step_seconds.append(t3 - t0)
     model._march_until_opaque, model.field.density = timed_rounds, timed_density
+    hook.remove()
     total = sum(step_seconds)
     phases = dict(timer.seconds)
     phases["backward"] = backward
@@ -209,12 +302,14 @@ def profile(args, out: Path) -> None:
     steps = args.steps
     params = sum(p.numel() for p in model.parameters())
     flops = mlp_flops_per_sample(model)
-    gflops, mlp_gflops, gbps = matmul_gflops(), mlp_like_gflops(), copy_gbps()
+    rates = machine_rates(rates)
+    mlp_gflops, gbps = rates["mlp_shape_gflops"], rates["copy_gbps"]
     kept_per_step = kept / steps
     bound_mlp = 3 * flops * kept_per_step / (mlp_gflops * 1e9)
     adam_bytes = params * 4 * 7          # read p, g, m, v; write p, m, v
     bound_adam = adam_bytes / (gbps * 1e9)
-    bound = bound_mlp + bound_adam
+    bound_hash = hash_memory_floor_ms(model.field.encoding, encoded) / 1e3
+    bound = bound_mlp + bound_adam + bound_hash
 
     model.eval()
     timer.seconds.clear()
@@ -238,11 +333,12 @@ def profile(args, out: Path) -> None:
         "trained_samples_per_step": kept_per_step, "full_march_steps": full_march_steps,
         "params": params,
         "mlp_flops_per_sample_forward": flops,
-        "machine": {"matmul_gflops": gflops, "mlp_shape_gflops": mlp_gflops,
-                    "copy_gbps": gbps, "threads": torch.get_num_threads()},
+        "machine": {**rates, "threads": torch.get_num_threads()},
         "bound_ms": {"mlp_fwd_bwd": 1e3 * bound_mlp, "adam_dense": 1e3 * bound_adam,
-                     "total": 1e3 * bound},
+                     "hash_rows": 1e3 * bound_hash, "total": 1e3 * bound},
+        "hash_points_last_step": int(sum(len(x) for x in encoded)),
         "step_over_bound": (total / steps) / bound,
+        "step_over_mlp_and_adam_bound": (total / steps) / (bound_mlp + bound_adam),
         "render_ms_per_image": metrics["render_ms_per_image"],
         "render_phases_ms_per_image": render_phases,
         "eval_seconds": eval_s, "psnr": metrics["psnr"],
