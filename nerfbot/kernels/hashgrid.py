@@ -204,17 +204,29 @@ def hash_backward_input(x, table, grad_out, offsets, res, grad_x, n_threads):
                 ix, iy, iz, wx, wy, wz = _cell(x, n, rf, r)
                 rows = _corner_rows(ix, iy, iz, res1, size - 1, dense)
                 # s_c = grad_out . table[row_c]: the loss's sensitivity to corner c's weight
-                s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = zero
-                for f in range(n_feat):
-                    g = grad_out[lvl, n, f]
-                    s0 += g * table[off + rows[0], f]
-                    s1 += g * table[off + rows[1], f]
-                    s2 += g * table[off + rows[2], f]
-                    s3 += g * table[off + rows[3], f]
-                    s4 += g * table[off + rows[4], f]
-                    s5 += g * table[off + rows[5], f]
-                    s6 += g * table[off + rows[6], f]
-                    s7 += g * table[off + rows[7], f]
+                if n_feat == 2:
+                    g0 = grad_out[lvl, n, 0]
+                    g1 = grad_out[lvl, n, 1]
+                    s0 = g0 * table[off + rows[0], 0] + g1 * table[off + rows[0], 1]
+                    s1 = g0 * table[off + rows[1], 0] + g1 * table[off + rows[1], 1]
+                    s2 = g0 * table[off + rows[2], 0] + g1 * table[off + rows[2], 1]
+                    s3 = g0 * table[off + rows[3], 0] + g1 * table[off + rows[3], 1]
+                    s4 = g0 * table[off + rows[4], 0] + g1 * table[off + rows[4], 1]
+                    s5 = g0 * table[off + rows[5], 0] + g1 * table[off + rows[5], 1]
+                    s6 = g0 * table[off + rows[6], 0] + g1 * table[off + rows[6], 1]
+                    s7 = g0 * table[off + rows[7], 0] + g1 * table[off + rows[7], 1]
+                else:
+                    s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = zero
+                    for f in range(n_feat):
+                        g = grad_out[lvl, n, f]
+                        s0 += g * table[off + rows[0], f]
+                        s1 += g * table[off + rows[1], f]
+                        s2 += g * table[off + rows[2], f]
+                        s3 += g * table[off + rows[3], f]
+                        s4 += g * table[off + rows[4], f]
+                        s5 += g * table[off + rows[5], f]
+                        s6 += g * table[off + rows[6], f]
+                        s7 += g * table[off + rows[7], f]
                 ux = one - wx
                 uy = one - wy
                 uz = one - wz
