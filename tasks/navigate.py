@@ -102,7 +102,7 @@ class NavTaskConfig:
     capture_views: int = 400
     """Training views of a room: 150 leave a 7 x 5.6 m room sparse enough for the field to fit
     them with fog (BENCHMARKS.md, section 9)."""
-    capture_robot_views: float = 0.5
+    capture_robot_views: float = 0.0
     """Share of the training views taken by the robot's own camera (its height, pitch and field
     of view) at base poses drawn uniformly over the floor it can stand on, as a robot exploring
     the room would record them; the rest come from the room's ``inside`` rig (0.4-1.6 m high,
