@@ -38,8 +38,8 @@ from nerfbot.data.writers import write_json_atomic
 from nerfbot.query.localise import (InerfConfig, WideConfig, inerf, localise_wide, perturb,
                                     pose_error)
 from nerfbot.train.runs import load_model
-from tasks.nav_map import true_floor_map
-from tasks.navigate import NAV_FIELD_OPTIONS, NavTaskConfig, World, ensure_trained
+from tasks.navigate import (NAV_FIELD_OPTIONS, NavTaskConfig, World, ensure_trained,
+                            free_base_poses)
 
 log = logging.getLogger(__name__)
 
@@ -58,12 +58,7 @@ LOOSE_ROTATION = 2.0
 
 def robot_views(world: World, cfg: NavTaskConfig, count: int, seed: int) -> list[np.ndarray]:
     """``count`` base poses (x, y, yaw) where the base stands on the true floor map, seeded."""
-    gt_map = true_floor_map(world.model, world.data, cfg.body, cfg.map_cell)
-    free = np.argwhere(gt_map.free_for(cfg.robot.radius + cfg.margin))
-    rng = np.random.default_rng(seed)
-    cells = free[rng.choice(len(free), size=count, replace=len(free) < count)]
-    xy = gt_map.to_world(cells)
-    return [np.array([x, y, rng.uniform(-np.pi, np.pi)]) for x, y in xy]
+    return free_base_poses(world, cfg, count, np.random.default_rng(seed))
 
 
 def estimator_config(name: str, planar: bool, options: dict | None = None):

@@ -161,23 +161,21 @@ def robot_camera_pose(robot: RobotConfig, pose) -> np.ndarray:
     return c2w
 
 
-def robot_capture_poses(cfg: NavTaskConfig, scene: str, count: int, seed: int) -> list:
-    """``count`` c2w poses of the robot's camera at base poses uniform over the cells of the
-    true floor map the base fits in (``radius + margin`` from obstacles), random yaw, seeded."""
-    world = World(scene, cfg)
-    try:
-        floor = true_floor_map(world.model, world.data, cfg.body, cfg.map_cell)
-    finally:
-        world.close()
+def free_base_poses(world: "World", cfg: NavTaskConfig, count: int, rng: np.random.Generator,
+                    jitter: float = 0.0) -> list[np.ndarray]:
+    """``count`` base poses (x, y, yaw) at cells of the true floor map the base fits on
+    (``radius + margin`` from obstacles), each moved by up to ``jitter`` cells in x and y,
+    yaw uniform; ValueError when no cell fits."""
+    floor = true_floor_map(world.model, world.data, cfg.body, cfg.map_cell)
     free = np.argwhere(floor.free_for(cfg.robot.radius + cfg.margin))
     if len(free) == 0:
-        raise ValueError(f"{scene}: no floor cell fits the robot (radius {cfg.robot.radius} m)")
-    rng = np.random.default_rng([seed, 7919])
+        raise ValueError(f"no floor cell fits the robot (radius {cfg.robot.radius} m)")
     cells = free[rng.choice(len(free), size=count, replace=len(free) < count)]
-    jitter = rng.uniform(-0.5, 0.5, size=(count, 2)) * cfg.map_cell
-    xy = floor.to_world(cells) + jitter
+    xy = floor.to_world(cells)
+    if jitter:
+        xy = xy + rng.uniform(-jitter, jitter, size=(count, 2)) * cfg.map_cell
     yaw = rng.uniform(-np.pi, np.pi, size=count)
-    return [robot_camera_pose(cfg.robot, (x, y, a)) for (x, y), a in zip(xy, yaw)]
+    return [np.array([x, y, a]) for (x, y), a in zip(xy, yaw)]
 
 
 def ensure_capture(cfg: NavTaskConfig, seed: int) -> Path:
@@ -202,7 +200,13 @@ def ensure_capture(cfg: NavTaskConfig, seed: int) -> Path:
                              "holds one camera")
         from_rig = cfg.capture_views - robot
         train = rig_poses(replace(rig, count=from_rig)) if from_rig else []
-        train += robot_capture_poses(cfg, name, robot, seed)
+        world = World(name, cfg)
+        try:
+            bases = free_base_poses(world, cfg, robot, np.random.default_rng([seed, 7919]),
+                                    jitter=0.5)
+        finally:
+            world.close()
+        train += [robot_camera_pose(cfg.robot, base) for base in bases]
         poses_file = folder / "capture_poses.json"
         write_json_atomic(poses_file, {"train": [p.tolist() for p in train],
                                        "test": [p.tolist() for p in rig_poses(test_rig)]})

@@ -3,6 +3,8 @@ command line's errors."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -75,13 +77,9 @@ def test_estimator_options_reach_their_estimators():
         split_estimator_options([("keep", 3)], ["inerf"])
 
 
-
-
 def test_navigation_capture_mixes_the_rooms_rig_and_the_robots_camera(tmp_path):
     """Half the training views from the robot's camera (its height and pitch, on floor the base
     fits on), half and the test views from the room's rig; the folder says so."""
-    import json
-
     from tasks.navigate import ensure_capture, robot_camera_pose, scene_folder
 
     cfg = NavTaskConfig(capture_size=32, capture_views=8, capture_test_views=2,
