@@ -62,6 +62,22 @@ class Field(nn.Module, metaclass=abc.ABCMeta):
         sigma, feat = self.density(x, cond)
         return sigma, self.color(feat, d, cond)
 
+    @property
+    def uses_footprint(self) -> bool:
+        """Whether :meth:`density_at_scale` uses the sample's footprint (renderers compute
+        the radii only then). Default: False."""
+        return False
+
+    def density_at_scale(self, x: torch.Tensor, radius: Optional[torch.Tensor],
+                         cond: Optional[torch.Tensor] = None
+                         ) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`density` of the samples of a pixel's cone: x (N, 3) world points, radius (N,)
+        the cone's radius at each point in metres (``t * Rays.radii``; None: points). A field
+        whose encoding knows the footprint fades out detail finer than it, so a far camera and a
+        near one that see the same surface each get the detail their pixels resolve. Default:
+        the radius is ignored."""
+        return self.density(x, cond)
+
     def occupancy_density(self, x: torch.Tensor, generator: Optional[torch.Generator] = None
                           ) -> torch.Tensor:
         """x: (N, 3) -> (N,) density for occupancy-grid updates: a cell must count as occupied
@@ -144,6 +160,10 @@ class BoxNormalizer(nn.Module):
         """Edge of the modelled cube, metres."""
         return float(self.cube_size)
 
+    def unit_scale(self, x: torch.Tensor) -> torch.Tensor:
+        """(N,) lengths at world points x (N, 3) in metres -> lengths in [0, 1]^3 units."""
+        return (1.0 / self.cube_size).expand(x.shape[0])
+
 
 class ContractedNormalizer(BoxNormalizer):
     """Maps all of space into [0, 1]^3 through the scene contraction
@@ -175,6 +195,15 @@ class ContractedNormalizer(BoxNormalizer):
         uniform contracted density is then equally opaque over every cell of the contracted
         grid, and the far shell has a finite optical depth."""
         return 1.0 / step_scale((x - self.centre) / (0.5 * self.cube_size))
+
+    def unit_scale(self, x: torch.Tensor) -> torch.Tensor:
+        """(N,) lengths at world points x (N, 3) in metres -> lengths in [0, 1]^3 units: the
+        contraction's isotropic scale at x (the cube root of its Jacobian's determinant: radial
+        factor 1 / n^2, tangential (2 - 1 / n) / n at ``n = |y|_inf > 1``), times the unit
+        cube's size per half-size."""
+        n = ((x - self.centre) / (0.5 * self.cube_size)).abs().amax(-1).clamp_min(1.0)
+        jacobian = ((2.0 - 1.0 / n) ** 2 / n ** 4) ** (1.0 / 3.0)
+        return jacobian / (CONTRACTED_HALF * self.cube_size)
 
     @property
     def extent(self) -> float:

@@ -35,6 +35,13 @@ class NGPFieldConfig(HashGridConfig):
     density grows; with a fixed bias, a large box starts as fog that learns to fake the sky."""
     mlp_lr_scale: float = 1.0
     """Learning rate of the MLPs relative to the hash table's."""
+    footprint_scale: float = 0.0
+    """Anti-aliasing by the sample's footprint (Zip-NeRF's feature down-weighting), s >= 0: the
+    features of a level of n cells per axis are weighted by ``erf(1 / sqrt(8 (s r n)^2))``, r
+    the radius of the pixel's cone at the sample in the grid's unit cube, so levels finer than a
+    pixel fade out: a far view of fine texture fits its average on the coarse levels and leaves
+    the fine ones to the near views. 0: point samples, every level at full weight (Instant-NGP);
+    density queries at points (maps, meshes) always see every level."""
     mlp_precision: str = "fp32"
     """"bf16": the MLPs run under bfloat16 autocast (AMX / AVX-512 BF16 on CPU, tensor cores on
     GPU), weights and Adam state stay float32; "fp32": plain float32. On the 2-core CPU here
@@ -72,6 +79,8 @@ class NGPField(Field):
             raise ValueError(f"initial_transmittance must be in (0, 1), got {cfg.initial_transmittance}")
         diagonal = math.sqrt(3.0) * self.normalize.extent
         self.density_bias = math.log(-math.log(cfg.initial_transmittance) / diagonal)
+        if cfg.footprint_scale < 0:
+            raise ValueError(f"footprint_scale must be >= 0, got {cfg.footprint_scale}")
         if cfg.mlp_precision not in ("bf16", "fp32"):
             raise ValueError(f"mlp_precision must be 'bf16' or 'fp32', got {cfg.mlp_precision!r}")
 
@@ -94,8 +103,32 @@ class NGPField(Field):
         return torch.autocast(x.device.type, dtype=torch.bfloat16,
                               enabled=self.config.mlp_precision == "bf16")
 
-    def density(self, x: torch.Tensor, cond: Optional[torch.Tensor] = None):
+    @property
+    def uses_footprint(self) -> bool:
+        return self.config.footprint_scale > 0
+
+    def level_weights(self, x: torch.Tensor, radius: torch.Tensor) -> torch.Tensor:
+        """(N, L) weights of the hash levels' features for samples at x (N, 3) of cone radius
+        ``radius`` (N,) metres (:attr:`NGPFieldConfig.footprint_scale`); 1 at radius 0."""
+        r = self.config.footprint_scale * radius * self.normalize.unit_scale(x)
+        scaled = r[:, None] * self.encoding.res.to(r.dtype)[None, :]
+        return torch.erf(torch.rsqrt((8.0 * scaled.square()).clamp_min(1e-12)))
+
+    def _encode(self, x: torch.Tensor, radius: Optional[torch.Tensor]) -> torch.Tensor:
+        """(N, L * F) hash features of world points x (N, 3), down-weighted by the footprint
+        when ``radius`` (N,) is given and :attr:`uses_footprint`."""
         enc = self.encoding(self.normalize(x))
+        if radius is None or not self.uses_footprint:
+            return enc
+        w = self.level_weights(x, radius.to(enc.dtype))
+        return enc * w.repeat_interleave(self.encoding.n_features, dim=1)
+
+    def density(self, x: torch.Tensor, cond: Optional[torch.Tensor] = None):
+        return self.density_at_scale(x, None, cond)
+
+    def density_at_scale(self, x: torch.Tensor, radius: Optional[torch.Tensor],
+                         cond: Optional[torch.Tensor] = None):
+        enc = self._encode(x, radius)
         with self._autocast(x):
             h = self.density_mlp(enc)
         h = h.float()

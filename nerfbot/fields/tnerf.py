@@ -53,8 +53,9 @@ class TNeRFField(NGPField):
             return like.new_zeros(n, self.conditioning.dim)
         return self.conditioning.normalize(cond.to(like.dtype))
 
-    def density(self, x: torch.Tensor, cond: Optional[torch.Tensor] = None):
-        enc = self.encoding(self.normalize(x))
+    def density_at_scale(self, x: torch.Tensor, radius: Optional[torch.Tensor],
+                         cond: Optional[torch.Tensor] = None):
+        enc = self._encode(x, radius)
         c = self.cond_encoding(self._cond(cond, x.shape[0], enc))
         with self._autocast(x):
             h = self.density_mlp(torch.cat([enc, c], -1))

@@ -257,6 +257,17 @@ class OccupancyModel(Model):
         o, d = rays.origins[s.ray_indices], rays.directions[s.ray_indices]
         return o + d * t_mid[:, None], d
 
+    def _density(self, x: torch.Tensor, rays: Rays, ray_idx: torch.Tensor, t: torch.Tensor,
+                 cond, cond_idx: Optional[torch.Tensor] = None):
+        """The field's (sigma, features) at samples x (S, 3) at distances t (S,) along rays
+        ``ray_idx`` (S,) of ``rays``, with the pixel's cone radius there when the field uses
+        it (:meth:`~nerfbot.fields.base.Field.density_at_scale`); the samples' conditions are
+        rows ``cond_idx`` (default ``ray_idx``) of ``cond``."""
+        c = gather_rows(cond, ray_idx if cond_idx is None else cond_idx)
+        if not self.field.uses_footprint or rays.radii is None:
+            return self.field.density(x, c)
+        return self.field.density_at_scale(x, rays.radii[ray_idx] * t, c)
+
     def render_rays(self, rays: Rays, generator=None, cond=None) -> RenderOutput:
         """Training mode: samples from jittered starts up to where each ray saturates
         (:meth:`_march_until_opaque`) or, while the field is mostly translucent, all of them
@@ -279,8 +290,9 @@ class OccupancyModel(Model):
             s = self._march(rays, t_begin, t_far)
             ray_idx, ts, te = s.ray_indices, s.t_starts, s.t_ends
         o, d = rays.origins[ray_idx], rays.directions[ray_idx]
-        x = o + d * (0.5 * (ts + te))[:, None]
-        sigma, feat = self.field.density(x, gather_rows(cond, ray_idx))
+        t_mid = 0.5 * (ts + te)
+        x = o + d * t_mid[:, None]
+        sigma, feat = self._density(x, rays, ray_idx, t_mid, cond)
         if self.config.train_early_termination and not rounds:
             with torch.no_grad():
                 _, trans = render_weights(sigma.detach().double(), ts, te, ray_idx, n)
@@ -314,8 +326,9 @@ class OccupancyModel(Model):
                 rays, t_near.detach(), t_far.detach(), cond,
                 self.config.early_stop_transmittance)
         o, d = rays.origins[ray_idx], rays.directions[ray_idx]
-        x = o + d * (0.5 * (ts + te))[:, None]
-        sigma, feat = self.field.density(x, gather_rows(cond, ray_idx))
+        t_mid = 0.5 * (ts + te)
+        x = o + d * t_mid[:, None]
+        sigma, feat = self._density(x, rays, ray_idx, t_mid, cond)
         rgb = self.field.color(feat, d, gather_rows(cond, ray_idx))
         return composite(sigma, rgb, ts, te, ray_idx, n, self.background(rays.directions),
                          t_far, rays.z_per_t, with_median=False)
@@ -358,7 +371,8 @@ class OccupancyModel(Model):
             if s.ray_indices.numel():
                 gidx = ids[s.ray_indices]
                 x, d = self._points(sub, s)
-                sigma, feat = self.field.density(x, gather_rows(cond, gidx))
+                sigma, feat = self._density(x, sub, s.ray_indices,
+                                            0.5 * (s.t_starts + s.t_ends), cond, gidx)
                 if drop_hidden:
                     _, trans = render_weights(sigma.double(), s.t_starts, s.t_ends,
                                               s.ray_indices, len(ids))
