@@ -13,6 +13,7 @@ from nerfbot.methods import build_model
 from nerfbot.ops.cameras import Rays
 from nerfbot.query.density import default_obstacle_threshold, density_at
 from nerfbot.query.render import render_rays_chunked
+from ray_training import train_on_rays
 
 pytestmark = pytest.mark.slow(75)  # rough single-core seconds (tests/conftest.py)
 
@@ -40,20 +41,7 @@ def train_plate(carving_weight: float, steps: int = 300) -> torch.nn.Module:
     model = build_model("ngp", [[-1, -1, -1], [1, 1, 1]], background="white", options={
         "log2_hashmap_size": 15, "carving_weight": carving_weight, "samples_per_batch": 1 << 14,
         "supersample": 1, "density_noise": 0.0})
-    opt = torch.optim.Adam(model.parameters(), lr=1e-2, eps=1e-15)
-    gen = torch.Generator().manual_seed(0)
-    model.train()
-    n_rays, samples = None, None
-    for step in range(steps):
-        model.before_step(step, gen, step / steps)
-        n_rays = model.rays_for_next_batch(samples, n_rays)  # about 2^14 samples, as in training
-        rays, rgb = plate_rays(n_rays, gen)
-        loss, out = model.loss(rays, rgb, gen)
-        samples = out.num_samples
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-    return model.eval()
+    return train_on_rays(model, plate_rays, steps)
 
 
 def plate_thickness(model) -> float:

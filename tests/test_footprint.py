@@ -16,6 +16,7 @@ from nerfbot.fields.ngp import NGPField, NGPFieldConfig
 from nerfbot.methods import build_model
 from nerfbot.ops.cameras import Rays
 from nerfbot.query.render import render_rays_chunked
+from ray_training import train_on_rays
 
 WALL_HALF = torch.tensor([0.8, 0.01, 0.6])    # a 1.6 x 1.2 m wall, 2 cm thick, at y = 0, metres
 PERIOD = 0.06                                 # the stripes' period along x, metres
@@ -90,20 +91,7 @@ def train_wall(footprint_scale: float, steps: int = 400) -> torch.nn.Module:
         "log2_hashmap_size": 16, "samples_per_batch": 1 << 14, "supersample": 1,
         "density_noise": 0.0, "carving_weight": 0.0, "sh_degree": 0,
         "footprint_scale": footprint_scale})
-    opt = torch.optim.Adam(model.parameters(), lr=1e-2, eps=1e-15)
-    gen = torch.Generator().manual_seed(0)
-    model.train()
-    n_rays, samples = None, None
-    for step in range(steps):
-        model.before_step(step, gen, step / steps)
-        n_rays = model.rays_for_next_batch(samples, n_rays)
-        rays, rgb, _ = wall_rays(n_rays, gen)
-        loss, out = model.loss(rays, rgb, gen)
-        samples = out.num_samples
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-    return model.eval()
+    return train_on_rays(model, lambda n, gen: wall_rays(n, gen)[:2], steps)
 
 
 def psnr_fine_and_coarse(model) -> tuple[float, float]:
@@ -120,5 +108,7 @@ def test_the_footprint_lets_one_field_fit_fine_stripes_and_their_coarse_average(
     coarse ones; with the footprint 24.9 and 33.5 dB)."""
     point_fine, point_coarse = psnr_fine_and_coarse(train_wall(0.0))
     cone_fine, cone_coarse = psnr_fine_and_coarse(train_wall(1.0))
+    print(f"point samples: fine {point_fine:.1f} dB, coarse {point_coarse:.1f} dB; "
+          f"footprint: fine {cone_fine:.1f} dB, coarse {cone_coarse:.1f} dB")
     assert cone_fine > point_fine + 5.0
     assert cone_coarse > point_coarse + 10.0
