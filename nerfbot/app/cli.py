@@ -193,7 +193,8 @@ RUN_FLAGS = {"method": "method", "seed": "seed", "lr": "lr", "option": "options"
              "sparse_depth_weight": "sparse_depth_weight", "labels": "labels",
              "label_clicks": "label_clicks", "label_weight": "label_weight",
              "dynamic_rays": "dynamic_rays", "dynamic_rays_debias": "dynamic_rays_debias",
-             "eval_at": "eval_at_seconds", "aabb": None}
+             "error_rays": "error_rays", "error_rays_debias": "error_rays_debias",
+             "error_tile": "error_tile", "eval_at": "eval_at_seconds", "aabb": None}
 
 
 def _given_train_flags(argv: list[str]) -> set[str]:
@@ -247,10 +248,14 @@ def _follow_saved_config(args, run: Path, saved: dict) -> dict:
                   _background_text(train["background"]),
                   # runs from before these flags drew rays uniformly
                   dynamic_rays=train.get("dynamic_rays", 0.0),
-                  dynamic_rays_debias=train.get("dynamic_rays_debias", 0.5))
+                  dynamic_rays_debias=train.get("dynamic_rays_debias", 0.5),
+                  error_rays=train.get("error_rays", 0.0),
+                  error_rays_debias=train.get("error_rays_debias", 1.0),
+                  error_tile=train.get("error_tile", 8))
     checked = set(RUN_FLAGS) if args.config is not None else \
         {"lr", "depth_weight", "sparse_depth_weight", "label_clicks", "label_weight",
-         "dynamic_rays", "dynamic_rays_debias", "eval_at"}
+         "dynamic_rays", "dynamic_rays_debias", "error_rays", "error_rays_debias",
+         "error_tile", "eval_at"}
     conflicts = []
     for dest in sorted(checked & given):
         mine, theirs = _comparable(dest, getattr(args, dest)), _comparable(dest, values[dest])
@@ -361,6 +366,8 @@ def _flag_train_config(args, method: str, options: dict, max_seconds, background
                 labels=args.labels or args.label_clicks is not None,
                 label_weight=args.label_weight, label_clicks=args.label_clicks,
                 dynamic_rays=args.dynamic_rays, dynamic_rays_debias=args.dynamic_rays_debias,
+                error_rays=args.error_rays, error_rays_debias=args.error_rays_debias,
+                error_tile=args.error_tile,
                 eval_at_seconds=args.eval_at or (),
                 checkpoint_every_seconds=args.checkpoint_every_seconds,
                 checkpoint_every_steps=args.checkpoint_every_steps,
@@ -1281,6 +1288,16 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
     p.add_argument("--dynamic-rays-debias", type=_fraction, default=0.5, metavar="D",
                    help="how much of the bias of those draws the loss undoes: 1 = unbiased, "
                         "0 = the changing pixels also weigh more (DyNeRF's) (default 0.5)")
+    p.add_argument("--error-rays", type=_fraction, default=0.0, metavar="F",
+                   help="fraction of each batch's pixels drawn where the training error is "
+                        "high (Instant-NGP's error map, tiles of --error-tile pixels), the rest "
+                        "uniformly (default 0: uniform; not with --dynamic-rays on a capture "
+                        "over time; a resume starts the map afresh)")
+    p.add_argument("--error-rays-debias", type=_fraction, default=1.0, metavar="D",
+                   help="how much of the bias of those draws the loss undoes: 1 = unbiased "
+                        "(default), 0 = the pixels drawn there also weigh more")
+    p.add_argument("--error-tile", type=_positive_int, default=8, metavar="PX",
+                   help="side of the error map's tiles, pixels (default 8)")
     p.add_argument("--resume", action="store_true",
                    help="continue the run in --out with its saved configuration (flags that "
                         "differ from it are refused; the budgets may change)")

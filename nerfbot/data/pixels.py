@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from nerfbot.data.dataset import Dataset
+from nerfbot.data.error_map import ErrorMap
 from nerfbot.data.errors import DatasetError
 from nerfbot.ops.cameras import Rays, pixel_rays
 
@@ -43,6 +44,18 @@ class ValidPixels:
 
     def __len__(self) -> int:
         return self.count
+
+    def contains(self, pixels: torch.Tensor) -> torch.Tensor:
+        """(n,) bool: which of the flat pixel indices ``pixels`` (n,) are valid."""
+        if self.valid is not None:
+            listed = self.valid.long()
+            at = torch.searchsorted(listed, pixels).clamp_(max=len(listed) - 1)
+            return listed[at] == pixels if len(listed) else torch.zeros_like(pixels, dtype=torch.bool)
+        invalid = self.skip.long() + torch.arange(len(self.skip), device=self.skip.device)
+        if not len(invalid):
+            return torch.ones_like(pixels, dtype=torch.bool)
+        at = torch.searchsorted(invalid, pixels).clamp_(max=len(invalid) - 1)
+        return invalid[at] != pixels
 
     def pixel(self, rank: torch.Tensor) -> torch.Tensor:
         """(n,) int64 pixel indices of the valid pixels of (n,) ranks in [0, V)."""
@@ -102,6 +115,11 @@ class PixelBank:
         self.last_weights: Optional[torch.Tensor] = None
         """(n,) float32 loss weights of the last :meth:`sample`'s pixels that undo the bias of
         importance draws (None without them): see :meth:`set_importance`."""
+        self.last_slots: Optional[torch.Tensor] = None
+        """(n,) frame slots of the last :meth:`sample`'s pixels."""
+        self.error_map: Optional[ErrorMap] = None
+        """The running training error that draws :attr:`importance_fraction` of every batch
+        (:meth:`enable_error_map`), or None."""
         self.conds = None if conditions is None else \
             torch.as_tensor(conditions[indices], dtype=torch.float32, device=device)
         """(frames, C) condition vector of each frame (time or joints), None when static."""
@@ -255,10 +273,9 @@ class PixelBank:
             raise ValueError(f"importance weights: expected {len(self)} pixels, got {w.shape[0]}")
         if not bool(torch.isfinite(w).all()) or bool((w < 0).any()):
             raise ValueError("importance weights must be finite and >= 0")
-        if not 0.0 <= fraction <= 1.0:
-            raise ValueError(f"importance fraction must be in [0, 1], got {fraction}")
-        if not 0.0 <= debias <= 1.0:
-            raise ValueError(f"importance debias must be in [0, 1], got {debias}")
+        self._check_draw_settings(fraction, debias)
+        if self.error_map is not None:
+            raise ValueError("importance weights and an error map both draw rays; use one")
         if self.valid is not None:
             keep = torch.zeros_like(w, dtype=torch.bool)
             rank = torch.arange(len(self.valid))
@@ -272,6 +289,41 @@ class PixelBank:
         self.importance_fraction = float(fraction)
         self.importance_debias = float(debias)
 
+    @staticmethod
+    def _check_draw_settings(fraction: float, debias: float) -> None:
+        if not 0.0 <= fraction <= 1.0:
+            raise ValueError(f"importance fraction must be in [0, 1], got {fraction}")
+        if not 0.0 <= debias <= 1.0:
+            raise ValueError(f"importance debias must be in [0, 1], got {debias}")
+
+    def enable_error_map(self, fraction: float, tile: int = 8, debias: float = 1.0) -> None:
+        """Draw ``fraction`` of every :meth:`sample` where the training error is high
+        (:class:`~nerfbot.data.error_map.ErrorMap`, tiles of ``tile`` pixels a side), the rest
+        uniformly; the trainer reports each batch's errors with :meth:`record_errors`. The loss
+        weights undo ``debias`` of the draws' bias, as with :meth:`set_importance`. A draw that
+        lands on a masked-out pixel is replaced by a uniform one."""
+        self._check_draw_settings(fraction, debias)
+        if self._importance is not None:
+            raise ValueError("importance weights and an error map both draw rays; use one")
+        self.error_map = ErrorMap(self.cameras.width, self.cameras.height, self.offsets, tile,
+                                  device=self.device)
+        self.importance_fraction = float(fraction)
+        self.importance_debias = float(debias)
+
+    def record_errors(self, errors: torch.Tensor) -> None:
+        """The squared colour errors (n,) of the last :meth:`sample`'s pixels, in their order,
+        for the error map (nothing without one)."""
+        if self.error_map is not None:
+            self.error_map.update(self.last_pixels, self.last_slots, errors.detach())
+
+    def _error_pixels(self, n: int, generator: torch.Generator) -> torch.Tensor:
+        p = self.error_map.draw(n, generator)
+        if self.valid is not None:
+            bad = ~self.valid.contains(p)
+            if bool(bad.any()):
+                p[bad] = self._uniform_pixels(int(bad.sum()), generator)
+        return p
+
     def _uniform_pixels(self, n: int, generator: torch.Generator) -> torch.Tensor:
         if self.valid is None:
             return torch.randint(len(self), (n,), generator=generator).to(self.device)
@@ -284,11 +336,15 @@ class PixelBank:
         # the first pixel whose cumulative weight exceeds u: never one of weight 0
         return torch.searchsorted(cdf, u, right=True).clamp_(max=len(cdf) - 1)
 
-    def _loss_weights(self, p: torch.Tensor) -> torch.Tensor:
-        """(n,) (1 / V) / q of pixels ``p`` (see :meth:`set_importance`)."""
+    def _loss_weights(self, p: torch.Tensor, slot: torch.Tensor) -> torch.Tensor:
+        """(n,) ((1 / V) / q) ** debias of pixels ``p`` in frame slots ``slot`` (see
+        :meth:`set_importance`)."""
         f = self.importance_fraction
         drawable = len(self) if self.valid is None else len(self.valid)
-        share = self._importance[p].double() * drawable / self._importance_cdf[-1]
+        if self.error_map is not None:
+            share = self.error_map.probability(p, slot) * drawable
+        else:
+            share = self._importance[p].double() * drawable / self._importance_cdf[-1]
         return (1.0 / ((1.0 - f) + f * share)).pow(self.importance_debias).float()
 
     def sample(self, n: int, generator: torch.Generator, supersample: int = 1,
@@ -302,13 +358,15 @@ class PixelBank:
         through a uniformly random point of each pixel: (n,) rays. With S > 1 each pixel gets
         S x S rays, one through a uniformly random point of each cell of an S x S grid over the
         pixel (stratified): (n * S * S,) rays, pixel after pixel."""
-        k = round(n * self.importance_fraction) if self._importance_cdf is not None else 0
+        weighted = self._importance_cdf is not None or self.error_map is not None
+        k = round(n * self.importance_fraction) if weighted else 0
         p = self._uniform_pixels(n - k, generator)
         if k:
-            p = torch.cat([self._important_pixels(k, generator), p])
-        self.last_pixels = p
-        self.last_weights = None if self._importance is None else self._loss_weights(p)
+            draw = self._important_pixels if self.error_map is None else self._error_pixels
+            p = torch.cat([draw(k, generator), p])
         slot = torch.searchsorted(self.offsets[1:], p, right=True)
+        self.last_pixels, self.last_slots = p, slot
+        self.last_weights = self._loss_weights(p, slot) if weighted else None
         rays, colours = self._pixel_rays(p, slot, generator, supersample, jitter)
         return rays, colours, slot
 

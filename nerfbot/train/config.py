@@ -77,6 +77,16 @@ class TrainConfig:
     also weigh more. On the dynamic scene (BENCHMARKS.md, section 4) 1 kept the whole image but
     lost the moving objects, 0 showed them with floaters over the static scene, 0.5 kept the
     one and most of the other."""
+    error_rays: float = 0.0
+    """The fraction of each batch's pixels drawn where the training error is high
+    (:mod:`nerfbot.data.error_map`, Instant-NGP's error-map sampling), the rest uniformly;
+    0 = uniform. Not with ``dynamic_rays`` on a capture over time (choose one)."""
+    error_rays_debias: float = 1.0
+    """How much of the bias of those draws the loss undoes, as ``dynamic_rays_debias``: 1 =
+    unbiased (more, less noisy samples where the error is, the same optimum); 0 = the pixels
+    drawn there also weigh more."""
+    error_tile: int = 8
+    """Side of the error map's tiles, pixels."""
     device: str = "cpu"
     """torch device; the fast kernels are CPU kernels, other devices use the torch twins
     (``NERFBOT_KERNELS=torch`` forces the twins on the CPU too: :mod:`nerfbot.kernels`)."""
@@ -124,6 +134,14 @@ class TrainConfig:
                 or not 0.0 <= self.dynamic_rays_debias <= 1.0:
             raise ValueError(f"dynamic_rays_debias must be in [0, 1], got "
                              f"{self.dynamic_rays_debias!r}")
+        for name in ("error_rays", "error_rays_debias"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) \
+                    or not 0.0 <= value <= 1.0:
+                raise ValueError(f"{name} must be in [0, 1], got {value!r}")
+        if isinstance(self.error_tile, bool) or not isinstance(self.error_tile, int) \
+                or self.error_tile < 1:
+            raise ValueError(f"error_tile must be an integer >= 1 pixels, got {self.error_tile!r}")
         if not self.checkpoint_every_seconds >= 0:
             raise ValueError(f"checkpoint_every_seconds must be >= 0, got "
                              f"{self.checkpoint_every_seconds}")

@@ -147,6 +147,10 @@ def batch_loss(model: Model, bank: "PixelBank", n_rays: int, generator: torch.Ge
         weights = torch.cat([weights, weights.new_ones(len(target) - len(weights))])
     loss, out = model.loss(rays, target, generator, cond, rays_per_pixel=k,
                            pixel_weights=weights)
+    if bank.error_map is not None:
+        with torch.no_grad():
+            rgb = out.rgb[:n_pixels * k].reshape(n_pixels, k, 3).mean(1)
+            bank.record_errors(((rgb - target[:n_pixels]) ** 2).mean(-1))
     if depth is not None:
         first = n_pixels * k
         span = sample_span(out, first, first + keypoints * k)
@@ -197,6 +201,15 @@ class Trainer:
         self.model.init_mean_color(self.bank.mean_color())
         if conditioning.kind == "time" and config.dynamic_rays > 0:
             self._load_importance()
+        if config.error_rays > 0:
+            if self.bank.importance_fraction > 0:
+                raise ValueError("error_rays and dynamic_rays both choose where rays go; set "
+                                 "one of them to 0 (--error-rays / --dynamic-rays)")
+            self.bank.enable_error_map(config.error_rays, config.error_tile,
+                                       config.error_rays_debias)
+            log.info("error rays: %.0f%% of each batch where the training error is high "
+                     "(%d tiles of %d px)", 100 * config.error_rays, len(self.bank.error_map),
+                     config.error_tile)
         if config.depth_weight > 0:
             self.bank.load_depths()
         if config.labels:
