@@ -77,15 +77,18 @@ def masked(tiny_capture, tmp_path_factory) -> Path:
 # ----------------------------------------------------------------------------- training
 
 
-def test_valid_pixels_maps_ranks_to_valid_pixels_in_both_layouts():
-    """Sparse and dense masks (stored as valid list and as skip list) give the same mapping."""
+def test_valid_pixels_maps_ranks_and_membership_in_both_layouts():
+    """Empty, sparse, dense and full masks (stored as valid list or as skip list) give the same
+    rank mapping and membership."""
     rng = np.random.default_rng(0)
-    for density in (0.05, 0.5, 0.97, 1.0):
+    for density in (0.0, 0.05, 0.5, 0.97, 1.0):
         valid = rng.random(5000) < density
         vp = ValidPixels(valid)
         assert (vp.valid is None) == (valid.sum() >= (~valid).sum())
         ranks = torch.arange(len(vp))
         np.testing.assert_array_equal(vp.pixel(ranks).numpy(), np.flatnonzero(valid))
+        for _ in range(2):  # the second call uses the cached index
+            np.testing.assert_array_equal(vp.contains(torch.arange(5000)).numpy(), valid)
 
 
 def test_pixel_bank_never_draws_a_masked_pixel(masked):

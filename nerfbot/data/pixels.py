@@ -36,6 +36,8 @@ class ValidPixels:
         dtype = np.int32 if valid.size < 2**31 else np.int64
         invalid = np.flatnonzero(~valid)
         self.valid = self.skip = None
+        self._sorted = None
+        """The listed indices (valid or invalid, sorted) as int64, for :meth:`contains`."""
         if invalid.size <= self.count:
             skip = invalid - np.arange(invalid.size)
             self.skip = torch.from_numpy(skip.astype(dtype)).to(device)
@@ -47,15 +49,14 @@ class ValidPixels:
 
     def contains(self, pixels: torch.Tensor) -> torch.Tensor:
         """(n,) bool: which of the flat pixel indices ``pixels`` (n,) are valid."""
-        if self.valid is not None:
-            listed = self.valid.long()
-            at = torch.searchsorted(listed, pixels).clamp_(max=len(listed) - 1)
-            return listed[at] == pixels if len(listed) else torch.zeros_like(pixels, dtype=torch.bool)
-        invalid = self.skip.long() + torch.arange(len(self.skip), device=self.skip.device)
-        if not len(invalid):
-            return torch.ones_like(pixels, dtype=torch.bool)
-        at = torch.searchsorted(invalid, pixels).clamp_(max=len(invalid) - 1)
-        return invalid[at] != pixels
+        if self._sorted is None:  # built on the first call (error-map sampling's upkeep)
+            self._sorted = self.valid.long() if self.valid is not None else \
+                self.skip.long() + torch.arange(len(self.skip), device=self.skip.device)
+        listed, listed_valid = self._sorted, self.valid is not None
+        if not len(listed):
+            return torch.full_like(pixels, not listed_valid, dtype=torch.bool)
+        at = torch.searchsorted(listed, pixels).clamp_(max=len(listed) - 1)
+        return (listed[at] == pixels) == listed_valid
 
     def pixel(self, rank: torch.Tensor) -> torch.Tensor:
         """(n,) int64 pixel indices of the valid pixels of (n,) ranks in [0, V)."""
