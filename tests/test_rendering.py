@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from nerfbot.fields.base import trunc_exp
-from nerfbot.ops.rendering import EMPTY_OPACITY, composite, render_weights
+from nerfbot.ops.rendering import EMPTY_OPACITY, composite, depth_spread, render_weights
 
 INF = float("inf")
 
@@ -276,6 +276,32 @@ def test_with_median_false_reports_expected_depth():
     b = random_batch(8)
     out = run_composite(b, with_median=False)
     assert torch.equal(out.median_depth, out.depth.detach())
+
+
+def test_depth_spread_matches_a_per_ray_reference_and_is_zero_for_empty_rays():
+    b = random_batch(11)
+    out = run_composite(b)
+    t_mid = 0.5 * (b["t_starts"] + b["t_ends"])
+    got = depth_spread(out.weights, t_mid, b["ray_indices"], b["n_rays"], out.opacity, out.depth)
+    w, t = np_(out.weights), np_(t_mid)
+    for r, idx in enumerate(ray_slices(b["ray_indices"], b["n_rays"])):
+        op = w[idx].sum()
+        if op <= EMPTY_OPACITY:
+            assert got[r].item() == 0.0
+            continue
+        mean = (w[idx] * t[idx]).sum() / op
+        assert got[r].item() == pytest.approx(math.sqrt((w[idx] * (t[idx] - mean) ** 2).sum() / op),
+                                              rel=1e-9, abs=1e-12)
+    assert (got[[0, b["n_rays"] // 2]] == 0).all()  # the batch's empty rays
+
+
+def test_depth_spread_keeps_centimetres_at_kilometres_in_float32():
+    # one ray: two equal weights 2 cm apart, 1 km away; E[t^2] - E[t]^2 would be all rounding
+    s, a, b_, ri = packed([[(50.0, 1000.0, 1000.01), (1e-3, 1000.01, 1000.02)]], torch.float32)
+    w = torch.tensor([0.5, 0.5])
+    t_mid = 0.5 * (a + b_)
+    spread = depth_spread(w, t_mid, ri, 1, torch.tensor([1.0]), torch.tensor([1000.01]))
+    assert spread.item() == pytest.approx(0.005, rel=2e-2)
 
 
 # ----------------------------------------------------------------------------- gradients

@@ -5,8 +5,9 @@ dynamic capture, then scored where things move.
         [--captures multi12,mono] [--out NAME]
 
 A method written ``NAME/VARIANT`` is trained into ``run_<capture>_NAME_VARIANT`` with the
-variant's flags (:data:`VARIANTS`): ``uniform`` rays (``--dynamic-rays 0``), or ``warmup``
-(``--option dynamic_warmup=0.2``, kplanes' static part alone first).
+variant's flags (:data:`VARIANTS`): ``uniform`` rays (``--dynamic-rays 0``), ``warmup``
+(``--option dynamic_warmup=0.2``, kplanes' static part alone first), or ``errors`` (half the
+rays by the training error instead of the images' change: ``--error-rays 0.5``).
 
 ``BENCH/<capture>`` holds the captures made by the commands in BENCHMARKS.md. Each method is
 trained alone (``nerfbot train --max-seconds S``) into ``BENCH/run_<capture>_<method>`` (kept
@@ -49,7 +50,8 @@ from nerfbot.train.runs import load_model
 HERE = Path(__file__).resolve().parent
 #: The training flags of a method written NAME/VARIANT.
 VARIANTS = {"": [], "uniform": ["--dynamic-rays", "0"],
-            "warmup": ["--option", "dynamic_warmup=0.2"]}
+            "warmup": ["--option", "dynamic_warmup=0.2"],
+            "errors": ["--dynamic-rays", "0", "--error-rays", "0.5"]}
 
 
 def object_mask(dataset, i: int) -> np.ndarray:

@@ -137,6 +137,9 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
     depth_rmse_objects_m over the valid pixels of the objects the manifest declares (None without
     segmentation or objects); median_depth_mae_m / median_depth_mae_objects_m, the same for
     the median depth (robust at object edges, where the expected depth blends two surfaces);
+    depth_spread_m: the median over the same pixels of how far along its ray the centre ray's
+    weight spreads (:func:`~nerfbot.ops.rendering.depth_spread`): about a marching step on a
+    sharp surface, more where the field is fog;
     psnr_objects: PSNR pooled over the pixels of those objects, their mask dilated by
     :data:`OBJECT_MASK_DILATION_PX` (in dynamic and articulated scenes the objects are what
     moves, a small part of each image; None without segmentation or objects); psnr_non_sky:
@@ -198,6 +201,7 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
     psnrs, ssims, times = [], [], []
     all_px, obj_px = _DepthErrorSum(), _DepthErrorSum()
     all_med, obj_med = _DepthErrorSum(), _DepthErrorSum()
+    spreads = []
     objects = object_geom_ids(dataset)
     on_objects_psnr, non_sky_psnr = _PooledPSNR(), _PooledPSNR()
     for slot, i in enumerate(indices):
@@ -237,6 +241,7 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
             if downscale > 1:
                 depth, valid = downscale_depth(depth, valid, w, h)
             all_px.add(out["z_depth"], depth, valid)
+            spreads.append(out["depth_spread"][valid])
             all_med.add(out["median_z_depth"], depth, valid)
             if on_obj is not None:
                 on_objects = valid & on_obj
@@ -256,6 +261,8 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
         "depth_rmse_objects_m": obj_px.rmse(),
         "median_depth_mae_m": all_med.mae(),
         "median_depth_mae_objects_m": obj_med.mae(),
+        "depth_spread_m": float(np.median(np.concatenate(spreads)))
+        if spreads and sum(map(len, spreads)) else None,
         "render_ms_per_image": float(np.median(times) * 1e3) if times else None,
         "num_images": len(indices),
         "downscale": downscale,

@@ -21,10 +21,11 @@ from scipy import ndimage
 from nerfbot.models.base import Model
 from nerfbot.models.labels import render_labels
 from nerfbot.ops.cameras import Cameras, Rays
-from nerfbot.ops.rendering import RenderOutput, threshold_depth
+from nerfbot.ops.rendering import RenderOutput, depth_spread, threshold_depth
 
 DEPTH_MODES = ("expected", "median", "threshold")
-_IMAGE_KEYS = ("rgb", "opacity", "depth", "z_depth", "median_depth", "median_z_depth")
+_IMAGE_KEYS = ("rgb", "opacity", "depth", "z_depth", "median_depth", "median_z_depth",
+               "depth_spread")
 
 #: How a supersampled render spreads its rays over a pixel (:func:`render_image`).
 SUPERSAMPLE_PATTERNS = ("grid", "corners", "adaptive")
@@ -57,7 +58,8 @@ def render_rays_chunked(model: Model, rays: Rays, chunk: int = 1 << 14, cond=Non
 
     Returns:
         A dict of float32 tensors: rgb (R, 3), opacity, depth (expected ray distance), z_depth,
-        median_depth (ray distance) and median_z_depth (R,), metres; with thresholds also
+        median_depth (ray distance), median_z_depth and depth_spread (R,), metres (the spread:
+        :func:`~nerfbot.ops.rendering.depth_spread`, how thick the surface is along the ray); with thresholds also
         threshold_depth (K, R) ray distance and threshold_z_depth (K, R), NaN where the ray never
         reaches the threshold.
     """
@@ -83,6 +85,9 @@ def render_rays_chunked(model: Model, rays: Rays, chunk: int = 1 << 14, cond=Non
             for k in ("rgb", "opacity", "depth", "z_depth", "median_depth"):
                 parts[k].append(getattr(out, k).float())
             parts["median_z_depth"].append((out.median_depth * sub.z_per_t).float())
+            parts["depth_spread"].append(depth_spread(
+                out.weights, 0.5 * (out.t_starts + out.t_ends), out.ray_indices, len(sub),
+                out.opacity, out.depth).float())
             if thresholds:
                 t = torch.stack([threshold_depth(out.sigmas, out.t_starts, out.t_ends,
                                                  out.ray_indices, len(sub), m)[0].float()
@@ -114,7 +119,8 @@ def render_image(model: Model, cameras: Cameras, index: int, downscale: int = 1,
                  supersample_pattern: Optional[str] = None,
                  adaptive_tolerance: Optional[float] = None) -> dict:
     """Render camera ``index`` as numpy images: rgb (H, W, 3) in [0, 1], and (H, W) opacity,
-    depth (ray distance, m), z_depth (m), median_depth (ray distance, m), median_z_depth (m);
+    depth (ray distance, m), z_depth (m), median_depth (ray distance, m), median_z_depth (m),
+    depth_spread (m, the standard deviation of where the ray ends);
     with ``thresholds`` (K values, 1/m) also threshold_depth / threshold_z_depth (K, H, W),
     NaN where invalid; with ``labels`` also labels (H, W, C) class probabilities of the
     model's label head, from the pixel centres.
