@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from nerfbot.data import load_dataset
+from nerfbot.data.pixels import depth_valid_mask
 from nerfbot.eval.evaluation import _PooledPSNR, evaluate
 from nerfbot.methods import build_model
 from nerfbot.query.render import render_image
@@ -40,3 +41,19 @@ def test_non_sky_psnr_scores_only_the_pixels_that_show_a_geom(tiny_capture):
         n += 3 * int(content.sum())
     assert metrics["psnr_non_sky"] == pytest.approx(-10 * math.log10(sq / n), abs=1e-6)
     assert metrics["psnr_non_sky"] != pytest.approx(metrics["psnr"], abs=1e-3)
+
+
+def test_depth_spread_is_the_median_spread_over_pixels_with_a_true_depth(tiny_capture):
+    ds = load_dataset(tiny_capture[0])
+    model = build_model("ngp", ds.aabb, "learned", {"log2_hashmap_size": 12}, 0).eval()
+    metrics = evaluate(model, ds, "test", max_images=2, with_ssim=False)
+    test = ds.indices("test")[:2]
+    spreads = []
+    for slot, i in enumerate(test):
+        img = render_image(model, ds.cameras(ds.indices("test")), slot)
+        valid = depth_valid_mask(ds, i)
+        assert valid.any() and np.isfinite(img["depth_spread"]).all()
+        spreads.append(img["depth_spread"][valid])
+    assert metrics["depth_spread_m"] == pytest.approx(float(np.median(np.concatenate(spreads))))
+    # an untrained field is fog: its rays end anywhere over centimetres of their length
+    assert metrics["depth_spread_m"] > 0.01

@@ -59,9 +59,9 @@ def render_rays_chunked(model: Model, rays: Rays, chunk: int = 1 << 14, cond=Non
     Returns:
         A dict of float32 tensors: rgb (R, 3), opacity, depth (expected ray distance), z_depth,
         median_depth (ray distance), median_z_depth and depth_spread (R,), metres (the spread:
-        :func:`~nerfbot.ops.rendering.depth_spread`, how thick the surface is along the ray); with thresholds also
-        threshold_depth (K, R) ray distance and threshold_z_depth (K, R), NaN where the ray never
-        reaches the threshold.
+        :func:`~nerfbot.ops.rendering.depth_spread`, how thick the surface is along the ray);
+        with thresholds also threshold_depth (K, R) ray distance and threshold_z_depth (K, R),
+        NaN where the ray never reaches the threshold.
     """
     thresholds = as_thresholds(list(thresholds))
     if labels and model.label_head is None:
