@@ -77,6 +77,12 @@ def test_hash_numba_forward_and_table_grad_match_float64_reference(name):
     np.testing.assert_allclose(g, g_ref, rtol=1e-5, atol=1e-5 * np.abs(g_ref).max())
     # rows no point touches get exactly zero gradient in both
     np.testing.assert_array_equal(g == 0.0, g_ref == 0.0)
+    # the kernel overwrites its output: a table gradient buffer full of NaN gives the same
+    grad_lnf = up.reshape(len(x), len(enc.res), -1).permute(1, 0, 2).contiguous()
+    dirty = np.full(tuple(enc.table.shape), np.nan, np.float32)
+    hk.hash_backward(x.clamp(0, 1).contiguous().numpy(), grad_lnf.numpy(), enc._offsets_np,
+                     enc._res_np, dirty, 2)
+    np.testing.assert_array_equal(dirty, enc.table.grad.numpy())
 
 
 def test_hash_points_outside_the_unit_cube_are_clamped():

@@ -143,7 +143,7 @@ class _HashEncodeNumba(torch.autograd.Function):
         grad_lnf = grad_out.reshape(-1, n_levels, n_feat).permute(1, 0, 2).contiguous()
         grad_x = grad_table = None
         if need_table:
-            grad_table = torch.zeros(shape, dtype=torch.float32)
+            grad_table = torch.empty(shape, dtype=torch.float32)  # the kernel zeroes it
             _hk.hash_backward(x_c.numpy(), grad_lnf.numpy(), offsets_np, res_np,
                               grad_table.numpy(), _n_workers())
         if need_x:
