@@ -296,11 +296,12 @@ def test_depth_spread_matches_a_per_ray_reference_and_is_zero_for_empty_rays():
 
 
 def test_depth_spread_keeps_centimetres_at_kilometres_in_float32():
-    # one ray: two equal weights 2 cm apart, 1 km away; E[t^2] - E[t]^2 would be all rounding
-    s, a, b_, ri = packed([[(50.0, 1000.0, 1000.01), (1e-3, 1000.01, 1000.02)]], torch.float32)
+    # one ray: two equal weights 1 cm apart, 1 km away (spread 5 mm); in float32, where t^2
+    # rounds to 0.06 m^2, E[t^2] - E[t]^2 would be all rounding
+    t_mid = torch.tensor([1000.005, 1000.015], dtype=torch.float32)
     w = torch.tensor([0.5, 0.5])
-    t_mid = 0.5 * (a + b_)
-    spread = depth_spread(w, t_mid, ri, 1, torch.tensor([1.0]), torch.tensor([1000.01]))
+    spread = depth_spread(w, t_mid, torch.zeros(2, dtype=torch.long), 1, torch.tensor([1.0]),
+                          torch.tensor([1000.01]))
     assert spread.item() == pytest.approx(0.005, rel=2e-2)
 
 

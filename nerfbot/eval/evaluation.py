@@ -262,7 +262,7 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
         "median_depth_mae_m": all_med.mae(),
         "median_depth_mae_objects_m": obj_med.mae(),
         "depth_spread_m": float(np.median(np.concatenate(spreads)))
-        if spreads and sum(map(len, spreads)) else None,
+        if sum(map(len, spreads)) else None,
         "render_ms_per_image": float(np.median(times) * 1e3) if times else None,
         "num_images": len(indices),
         "downscale": downscale,
