@@ -123,6 +123,14 @@ class NavTaskConfig:
     """A field map ignores density this close to the floor (metres; the base's own clearance,
     :attr:`tasks.nav_map.RobotBody.floor_clearance`, if higher): a field's floor is a few
     centimetres thick, and its fuzz would block open floor (BENCHMARKS.md, section 9)."""
+    glass_threshold: Optional[float] = None
+    """A second, lower obstacle density of a field map (1/m; None: none), counted only from
+    :attr:`glass_clearance` above the floor up: Dex-NeRF's low threshold, for glass that the
+    field holds as faint density. A field's floor fades out over the first 10-15 cm above it,
+    which such a threshold would count as obstacle everywhere; above that, free space in the
+    room fields is clear (BENCHMARKS.md, section 9, "Glass partitions")."""
+    glass_clearance: float = 0.2
+    """Height above the floor (metres) from which :attr:`glass_threshold` counts."""
     margin: float = 0.03
     """Planning keeps the base this much farther from obstacles than its radius."""
     min_distance: float = 1.5
@@ -310,16 +318,20 @@ def true_maps(world: World, cfg: NavTaskConfig) -> tuple[FloorMap, Optional[Floo
 
 def field_floor_map(model, world: World, cfg: NavTaskConfig) -> FloorMap:
     """Floor map of the field's density on a grid over the room (floor to the base's top),
-    each cell tested at :data:`CELL_TESTS`."""
+    each cell tested at :data:`CELL_TESTS`: blocked where the density reaches ``threshold``
+    from ``map_floor_clearance`` up, or ``glass_threshold`` from ``glass_clearance`` up."""
     bounds, resolution = map_grid(world, cfg)
-    body = replace(cfg.body, floor_clearance=max(cfg.body.floor_clearance,
-                                                 cfg.map_floor_clearance))
+    bands = [(cfg.threshold, cfg.map_floor_clearance)]
+    if cfg.glass_threshold is not None:
+        bands.append((cfg.glass_threshold, cfg.glass_clearance))
     blocked = None
-    for offset in itertools.product(CELL_TESTS, repeat=3):
-        shifted = bounds + np.asarray(offset) * cfg.map_cell
-        fmap = floor_map_from_volume(occupancy_volume(model, shifted, resolution,
-                                                      cfg.threshold), body)
-        blocked = fmap.blocked if blocked is None else blocked | fmap.blocked
+    for threshold, clearance in bands:
+        body = replace(cfg.body, floor_clearance=max(cfg.body.floor_clearance, clearance))
+        for offset in itertools.product(CELL_TESTS, repeat=3):
+            shifted = bounds + np.asarray(offset) * cfg.map_cell
+            fmap = floor_map_from_volume(occupancy_volume(model, shifted, resolution,
+                                                          threshold), body)
+            blocked = fmap.blocked if blocked is None else blocked | fmap.blocked
     return FloorMap(blocked, bounds[0, :2], cfg.map_cell)
 
 
@@ -623,6 +635,12 @@ def main(argv=None) -> int:
                         + ", ".join(f"{k}={v}" for k, v in NAV_FIELD_OPTIONS.items()))
     parser.add_argument("--threshold", type=float, default=None,
                         help="obstacle density of a field map, 1/m")
+    parser.add_argument("--glass-threshold", type=float, default=None,
+                        help="a second, lower obstacle density of a field map (1/m), counted "
+                             "from --glass-clearance above the floor up (Dex-NeRF's, for glass)")
+    parser.add_argument("--glass-clearance", type=float, default=NavTaskConfig.glass_clearance,
+                        help="height above the floor (metres) from which --glass-threshold "
+                             "counts")
     parser.add_argument("--gate", type=float, default=DriveConfig.gate_distance,
                         help="with estimated poses, reject an estimate this far (metres) from "
                              "the predicted pose (0: accept every estimate)")
@@ -641,6 +659,13 @@ def main(argv=None) -> int:
     for name in ("scenes", "train_steps", "capture_views", "capture_size"):
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be at least 1")
+    for name in ("threshold", "glass_threshold"):
+        value = getattr(args, name)
+        if value is not None and not value > 0:
+            parser.error(f"--{name.replace('_', '-')} must be above 0 /m, got {value}")
+    if not 0.0 <= args.glass_clearance < RobotConfig.height:
+        parser.error(f"--glass-clearance must be in [0, {RobotConfig.height}) m (the base's "
+                     f"height), got {args.glass_clearance}")
     if not 0.0 <= args.capture_robot_views <= 1.0:
         parser.error(f"--capture-robot-views must be in [0, 1], got {args.capture_robot_views}")
     cfg = NavTaskConfig(scene=args.scene, scenes=args.scenes, trials=args.trials, seed=args.seed,
@@ -648,6 +673,8 @@ def main(argv=None) -> int:
                         capture_views=args.capture_views, capture_size=args.capture_size,
                         capture_robot_views=args.capture_robot_views,
                         threshold=args.threshold, map_floor_clearance=args.floor_clearance,
+                        glass_threshold=args.glass_threshold,
+                        glass_clearance=args.glass_clearance,
                         out=args.out, device=args.device,
                         train_options={**NAV_FIELD_OPTIONS, **dict(args.option)},
                         drive=replace(DriveConfig(), gate_distance=args.gate,

@@ -301,6 +301,48 @@ def test_sensor_map_of_a_small_capture_finds_the_walls_and_furniture(tmp_path):
     assert agreement["standable_kept"] > 0.85, agreement
 
 
+class PaneField(nn.Module):
+    """A room-sized field: a faint pane (0.8 / m, as a field holds glass) across x = 0.5 m,
+    10 cm thick and floor to ceiling, over a floor whose density fades out 3 / m below
+    z = 0.12 m, as a trained field's floor does; nothing else."""
+
+    def density(self, x, cond=None):
+        pane = 0.8 * (torch.abs(x[..., 0] - 0.5) < 0.05).to(x.dtype)
+        fuzz = 3.0 * (x[..., 2] < 0.12).to(x.dtype)
+        return pane + fuzz, None
+
+
+class PaneModel(nn.Module):
+    def __init__(self):
+        super().__init__()
+        self.register_buffer("aabb", torch.tensor([[-4.0, -4.0, -0.1], [4.0, 4.0, 3.0]]))
+        self.field = PaneField()
+
+
+def test_a_field_map_finds_a_faint_pane_above_the_floors_fuzz_only_with_the_glass_band():
+    from dataclasses import replace
+
+    from tasks.navigate import NavTaskConfig, World, field_floor_map
+
+    cfg = NavTaskConfig(capture_size=32, progress=False, threshold=10.0)
+    world = World("room:0", cfg)
+    try:
+        model = PaneModel()
+        plain = field_floor_map(model, world, cfg)
+        glass = field_floor_map(model, world, replace(cfg, glass_threshold=0.5))
+        low = field_floor_map(model, world, replace(cfg, glass_threshold=0.5,
+                                                    glass_clearance=0.05))
+    finally:
+        world.close()
+    x = plain.to_world(np.stack([np.arange(plain.shape[0]), np.zeros(plain.shape[0], int)],
+                                -1))[:, 0]
+    on_pane = np.abs(x - 0.5) < 0.04
+    assert not plain.blocked.any()                 # 0.8 / m is below the threshold
+    assert glass.blocked[on_pane].all()            # the band counts the pane at every y
+    assert not glass.blocked[np.abs(x - 0.5) > 0.1].any()   # and nothing of the floor's fuzz
+    assert low.blocked.all()                       # counted from 5 cm, the fuzz blocks it all
+
+
 def test_estimate_errors_are_taken_where_the_estimates_were_made():
     poses = np.zeros((5, 3))
     estimates = poses.copy()

@@ -9,10 +9,13 @@ reported beside. The field's density inside the declared obstacles is printed to
 grids of points 2 cm apart filling their boxes from 0.1 to 0.5 m above the floor, pooled
 over the transparent and over the opaque ones: the median, and the share of points at 5 /m
 or more, the glassware family's Dex-NeRF threshold): what threshold could find them.
-Writes OUT/sweep.json and OUT/sweep.png.
+With ``--glass-thresholds``, the default map is also made with each as its second, lower
+threshold counted from ``--glass-clearance`` above the floor up
+(``NavTaskConfig.glass_threshold``). Writes OUT/sweep.json and OUT/sweep.png.
 
 usage: python docs/benchmarks/nav_threshold_sweep.py OUT [--scene room_glass] [--seed 1000]
-           [--scenes 1] [--thresholds 1,2,3,4,6,8,12] [--option KEY=VALUE ...]
+           [--scenes 1] [--thresholds 1,2,3,4,6,8,12] [--glass-thresholds 0.25,0.5,1]
+           [--glass-clearance 0.2] [--option KEY=VALUE ...]
 """
 import argparse
 import json
@@ -44,11 +47,17 @@ parser.add_argument("--scene", default="room_glass")
 parser.add_argument("--seed", type=int, default=1000)
 parser.add_argument("--scenes", type=int, default=1)
 parser.add_argument("--thresholds", default="1,2,3,4,6,8,12")
+parser.add_argument("--glass-thresholds", default="",
+                    help="second, lower thresholds (1/m) of the default map, comma-separated")
+parser.add_argument("--glass-clearance", type=float, default=0.2,
+                    help="height (m) from which a glass threshold counts")
 parser.add_argument("--option", action="append", default=[], type=parse_option,
                     help="field option of the training runs, as tasks.navigate takes it")
 args = parser.parse_args()
 thresholds = [float(t) for t in args.thresholds.split(",")]
-cfg = NavTaskConfig(scene=args.scene, train_options={**NAV_FIELD_OPTIONS, **dict(args.option)})
+glass_thresholds = [float(t) for t in args.glass_thresholds.split(",") if t]
+cfg = NavTaskConfig(scene=args.scene, train_options={**NAV_FIELD_OPTIONS, **dict(args.option)},
+                    glass_clearance=args.glass_clearance)
 args.out.mkdir(parents=True, exist_ok=True)
 
 
@@ -93,6 +102,11 @@ for seed in range(args.seed, args.seed + args.scenes):
             fmap = field_floor_map(model, world, replace(cfg, threshold=t))
             rows.append({"scene": name, "map": "nerf", "threshold": t, "default": t == default,
                          **map_agreement(fmap, truth, radius, glass)})
+        for g in glass_thresholds:
+            fmap = field_floor_map(model, world, replace(cfg, glass_threshold=g))
+            rows.append({"scene": name, "map": "nerf+glass", "threshold": default,
+                         "glass_threshold": g, "default": False,
+                         **map_agreement(fmap, truth, radius, glass)})
         fmap = sensor_floor_map(ensure_capture(cfg, seed), world, cfg)
         rows.append({"scene": name, "map": "sensor", "threshold": None, "default": False,
                      **map_agreement(fmap, truth, radius, glass)})
@@ -105,6 +119,8 @@ for r in rows:
     if r["map"].startswith("inside"):
         continue
     t = "" if r["threshold"] is None else f"{r['threshold']:.1f}" + (" (default)" if r["default"] else "")
+    if "glass_threshold" in r:
+        t += f" + {r['glass_threshold']:g} from {args.glass_clearance:g} m"
     print(f"| `{r['scene']}` | {r['map']} | {t} | "
           + " | ".join(f"{r[k]:.3f}" if k in r else "" for k in KEYS) + " |")
 (args.out / "sweep.json").write_text(json.dumps(rows, indent=1))
