@@ -3,7 +3,8 @@
 For each room (``tasks.navigate``'s capture and training, cached as the task caches them) the
 field's floor map is made at every threshold and compared with the true map
 (``tasks.nav_map.map_agreement``: IoU, phantom and missed cells, standable floor kept and
-wrong, and the share of the transparent obstacles' cells blocked). The default threshold
+wrong, and the share of the transparent obstacles' cells blocked), with the share of the free
+floor (over 0.25 m from obstacles) whose density reaches the lowest threshold, by height. The default threshold
 (:func:`nerfbot.query.density.default_obstacle_threshold`) and the depth sensor's map are
 reported beside. The field's density inside the declared obstacles is printed too (over
 grids of points 2 cm apart filling their boxes from 0.1 to 0.5 m above the floor, pooled
@@ -15,7 +16,7 @@ threshold counted from ``--glass-clearance`` above the floor up
 
 usage: python docs/benchmarks/nav_threshold_sweep.py OUT [--scene room_glass] [--seed 1000]
            [--scenes 1] [--thresholds 1,2,3,4,6,8,12] [--glass-thresholds 0.25,0.5,1]
-           [--glass-clearance 0.2] [--option KEY=VALUE ...]
+           [--glass-clearance 0.2] [--train-steps 2000] [--option KEY=VALUE ...]
 """
 import argparse
 import json
@@ -51,13 +52,14 @@ parser.add_argument("--glass-thresholds", default="",
                     help="second, lower thresholds (1/m) of the default map, comma-separated")
 parser.add_argument("--glass-clearance", type=float, default=0.2,
                     help="height (m) from which a glass threshold counts")
+parser.add_argument("--train-steps", type=int, default=NavTaskConfig.train_steps)
 parser.add_argument("--option", action="append", default=[], type=parse_option,
                     help="field option of the training runs, as tasks.navigate takes it")
 args = parser.parse_args()
 thresholds = [float(t) for t in args.thresholds.split(",")]
 glass_thresholds = [float(t) for t in args.glass_thresholds.split(",") if t]
 cfg = NavTaskConfig(scene=args.scene, train_options={**NAV_FIELD_OPTIONS, **dict(args.option)},
-                    glass_clearance=args.glass_clearance)
+                    glass_clearance=args.glass_clearance, train_steps=args.train_steps)
 args.out.mkdir(parents=True, exist_ok=True)
 
 
@@ -76,6 +78,24 @@ def obstacle_densities(model, world) -> list[dict]:
         sigma = density_at(model, torch.as_tensor(pts, dtype=torch.float32)).numpy()
         out.append({"geom": name, "transparent": name in clear, "sigma": sigma})
     return out
+
+
+#: Heights (m) of the free-floor density profile, and how far from obstacles it looks.
+PROFILE_HEIGHTS = np.arange(0.02, 0.31, 0.02)
+PROFILE_CLEARANCE = 0.25
+
+
+def free_floor_profile(model, truth, level: float) -> list[float]:
+    """Share of the free floor's cells (farther than PROFILE_CLEARANCE from the true map's
+    obstacles) whose density reaches ``level`` (1/m), at each of PROFILE_HEIGHTS."""
+    cells = np.argwhere(truth.clearance() > PROFILE_CLEARANCE)
+    xy = truth.to_world(cells)
+    share = []
+    for z in PROFILE_HEIGHTS:
+        pts = np.concatenate([xy, np.full((len(xy), 1), z)], 1)
+        sigma = density_at(model, torch.as_tensor(pts, dtype=torch.float32)).numpy()
+        share.append(float((sigma >= level).mean()))
+    return share
 
 
 rows = []
@@ -98,6 +118,13 @@ for seed in range(args.seed, args.seed + args.scenes):
                 print(f"{name}: density inside the {len(picked)} {kind} obstacles: median "
                       f"{stats['median']:.2f} /m, {stats['share_at_dex']:.1%} of the points at "
                       f"{DEX_THRESHOLD:g} /m or more")
+        level = min(glass_thresholds + thresholds)
+        profile = free_floor_profile(model, truth, level)
+        rows.append({"scene": name, "map": "free floor profile", "level": level,
+                     "heights": PROFILE_HEIGHTS.tolist(), "share": profile})
+        print(f"{name}: share of the free floor (> {PROFILE_CLEARANCE} m from obstacles) at "
+              f"{level:g} /m or more, by height: " + ", ".join(
+                  f"{z:.2f} m {v:.0%}" for z, v in zip(PROFILE_HEIGHTS, profile)))
         for t in sorted(set(thresholds + [default])):
             fmap = field_floor_map(model, world, replace(cfg, threshold=t))
             rows.append({"scene": name, "map": "nerf", "threshold": t, "default": t == default,
@@ -116,7 +143,7 @@ for seed in range(args.seed, args.seed + args.scenes):
 print("| room | map | threshold (1/m) | " + " | ".join(KEYS) + " |")
 print("|---|---|---|" + "---|" * len(KEYS))
 for r in rows:
-    if r["map"].startswith("inside"):
+    if r["map"].startswith("inside") or r["map"] == "free floor profile":
         continue
     t = "" if r["threshold"] is None else f"{r['threshold']:.1f}" + (" (default)" if r["default"] else "")
     if "glass_threshold" in r:
