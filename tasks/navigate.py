@@ -50,6 +50,7 @@ import cv2
 import mujoco
 import numpy as np
 import open3d as o3d
+from scipy import ndimage
 from tqdm import tqdm
 
 import sims  # noqa: F401  (selects the GL backend before mujoco is imported)
@@ -132,6 +133,11 @@ class NavTaskConfig:
     room fields is clear (BENCHMARKS.md, section 9, "Glass partitions")."""
     glass_clearance: float = 0.2
     """Height above the floor (metres) from which :attr:`glass_threshold` counts."""
+    glass_halo: float = 0.1
+    """:attr:`glass_threshold` ignores cells within this distance (metres) of the cells the
+    first threshold blocks: around a dense surface a field's density fades out over 5-15 cm,
+    which a low threshold counts as a thicker obstacle (in rooms without glass, 0.1 m keeps
+    every pair the first threshold alone plans; BENCHMARKS.md, section 9)."""
     margin: float = 0.03
     """Planning keeps the base this much farther from obstacles than its radius."""
     min_distance: float = 1.5
@@ -320,20 +326,33 @@ def true_maps(world: World, cfg: NavTaskConfig) -> tuple[FloorMap, Optional[Floo
 def field_floor_map(model, world: World, cfg: NavTaskConfig) -> FloorMap:
     """Floor map of the field's density on a grid over the room (floor to the base's top),
     each cell tested at :data:`CELL_TESTS`: blocked where the density reaches ``threshold``
-    from ``map_floor_clearance`` up, or ``glass_threshold`` from ``glass_clearance`` up."""
+    from ``map_floor_clearance`` up, or ``glass_threshold`` from ``glass_clearance`` up
+    farther than ``glass_halo`` from the cells the first threshold blocks."""
     bounds, resolution = map_grid(world, cfg)
-    bands = [(cfg.threshold, cfg.map_floor_clearance)]
+    blocked = _blocked_cells(model, bounds, resolution, cfg, cfg.threshold,
+                             cfg.map_floor_clearance)
     if cfg.glass_threshold is not None:
-        bands.append((cfg.glass_threshold, cfg.glass_clearance))
-    blocked = None
-    for threshold, clearance in bands:
-        body = replace(cfg.body, floor_clearance=max(cfg.body.floor_clearance, clearance))
-        for offset in itertools.product(CELL_TESTS, repeat=3):
-            shifted = bounds + np.asarray(offset) * cfg.map_cell
-            fmap = floor_map_from_volume(occupancy_volume(model, shifted, resolution,
-                                                          threshold), body)
-            blocked = fmap.blocked if blocked is None else blocked | fmap.blocked
+        faint = _blocked_cells(model, bounds, resolution, cfg, cfg.glass_threshold,
+                               cfg.glass_clearance)
+        if cfg.glass_halo > 0 and blocked.any():
+            faint &= ndimage.distance_transform_edt(~blocked, sampling=cfg.map_cell) \
+                > cfg.glass_halo + 1e-9
+        blocked = blocked | faint
     return FloorMap(blocked, bounds[0, :2], cfg.map_cell)
+
+
+def _blocked_cells(model, bounds: np.ndarray, resolution: int, cfg: NavTaskConfig,
+                   threshold: Optional[float], clearance: float) -> np.ndarray:
+    """(X, Y) bool: cells where the density reaches ``threshold`` (None: the default) at any
+    of :data:`CELL_TESTS` between ``clearance`` above the floor and the base's top."""
+    body = replace(cfg.body, floor_clearance=max(cfg.body.floor_clearance, clearance))
+    blocked = None
+    for offset in itertools.product(CELL_TESTS, repeat=3):
+        shifted = bounds + np.asarray(offset) * cfg.map_cell
+        fmap = floor_map_from_volume(occupancy_volume(model, shifted, resolution, threshold),
+                                     body)
+        blocked = fmap.blocked if blocked is None else blocked | fmap.blocked
+    return blocked
 
 
 def sensor_floor_map(data: Path, world: World, cfg: NavTaskConfig) -> FloorMap:
@@ -642,6 +661,9 @@ def main(argv=None) -> int:
     parser.add_argument("--glass-clearance", type=float, default=NavTaskConfig.glass_clearance,
                         help="height above the floor (metres) from which --glass-threshold "
                              "counts")
+    parser.add_argument("--glass-halo", type=float, default=NavTaskConfig.glass_halo,
+                        help="--glass-threshold ignores cells within this distance (metres) of "
+                             "the obstacles of the first threshold")
     parser.add_argument("--gate", type=float, default=DriveConfig.gate_distance,
                         help="with estimated poses, reject an estimate this far (metres) from "
                              "the predicted pose (0: accept every estimate)")
@@ -664,6 +686,8 @@ def main(argv=None) -> int:
         value = getattr(args, name)
         if value is not None and not value > 0:
             parser.error(f"--{name.replace('_', '-')} must be above 0 /m, got {value}")
+    if not args.glass_halo >= 0:
+        parser.error(f"--glass-halo must be at least 0 m, got {args.glass_halo}")
     if not 0.0 <= args.glass_clearance < RobotConfig.height:
         parser.error(f"--glass-clearance must be in [0, {RobotConfig.height}) m (the base's "
                      f"height), got {args.glass_clearance}")
@@ -675,7 +699,7 @@ def main(argv=None) -> int:
                         capture_robot_views=args.capture_robot_views,
                         threshold=args.threshold, map_floor_clearance=args.floor_clearance,
                         glass_threshold=args.glass_threshold,
-                        glass_clearance=args.glass_clearance,
+                        glass_clearance=args.glass_clearance, glass_halo=args.glass_halo,
                         out=args.out, device=args.device,
                         train_options={**NAV_FIELD_OPTIONS, **dict(args.option)},
                         drive=replace(DriveConfig(), gate_distance=args.gate,

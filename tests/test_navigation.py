@@ -303,13 +303,16 @@ def test_sensor_map_of_a_small_capture_finds_the_walls_and_furniture(tmp_path):
 
 class PaneField(nn.Module):
     """A room-sized field: a faint pane (0.8 / m, as a field holds glass) across x = 0.5 m,
-    10 cm thick and floor to ceiling, over a floor whose density fades out 3 / m below
-    z = 0.12 m, as a trained field's floor does; nothing else."""
+    10 cm thick and floor to ceiling; a dense wall (100 / m) across x = -1 m, 10 cm thick,
+    with a faint fringe (0.8 / m) 8 cm deep on both sides, as a trained field blurs a surface;
+    and a floor whose density fades out 3 / m below z = 0.12 m, as a trained field's does."""
 
     def density(self, x, cond=None):
         pane = 0.8 * (torch.abs(x[..., 0] - 0.5) < 0.05).to(x.dtype)
+        d = torch.abs(x[..., 0] + 1.0)
+        wall = 100.0 * (d < 0.05).to(x.dtype) + 0.8 * ((d >= 0.05) & (d < 0.13)).to(x.dtype)
         fuzz = 3.0 * (x[..., 2] < 0.12).to(x.dtype)
-        return pane + fuzz, None
+        return pane + wall + fuzz, None
 
 
 class PaneModel(nn.Module):
@@ -319,7 +322,7 @@ class PaneModel(nn.Module):
         self.field = PaneField()
 
 
-def test_a_field_map_finds_a_faint_pane_above_the_floors_fuzz_only_with_the_glass_band():
+def test_a_field_map_finds_a_faint_pane_above_the_floors_fuzz_and_off_dense_surfaces():
     from dataclasses import replace
 
     from tasks.navigate import NavTaskConfig, World, field_floor_map
@@ -329,17 +332,24 @@ def test_a_field_map_finds_a_faint_pane_above_the_floors_fuzz_only_with_the_glas
     try:
         model = PaneModel()
         plain = field_floor_map(model, world, cfg)
-        glass = field_floor_map(model, world, replace(cfg, glass_threshold=0.5))
+        glass = field_floor_map(model, world, replace(cfg, glass_threshold=0.5,
+                                                      glass_halo=0.0))
+        halo = field_floor_map(model, world, replace(cfg, glass_threshold=0.5))  # 0.1 m
         low = field_floor_map(model, world, replace(cfg, glass_threshold=0.5,
-                                                    glass_clearance=0.05))
+                                                    glass_clearance=0.05, glass_halo=0.0))
     finally:
         world.close()
     x = plain.to_world(np.stack([np.arange(plain.shape[0]), np.zeros(plain.shape[0], int)],
                                 -1))[:, 0]
-    on_pane = np.abs(x - 0.5) < 0.04
-    assert not plain.blocked.any()                 # 0.8 / m is below the threshold
+    on_pane, on_wall = np.abs(x - 0.5) < 0.04, np.abs(x + 1.0) < 0.04
+    fringe = (np.abs(x + 1.0) > 0.08) & (np.abs(x + 1.0) < 0.12)
+    assert plain.blocked[on_wall].all() and not plain.blocked[np.abs(x + 1.0) > 0.08].any()
+    assert not plain.blocked[on_pane].any()        # 0.8 / m is below the threshold
     assert glass.blocked[on_pane].all()            # the band counts the pane at every y
-    assert not glass.blocked[np.abs(x - 0.5) > 0.1].any()   # and nothing of the floor's fuzz
+    assert glass.blocked[fringe].all()             # and the wall's fringe
+    assert not glass.blocked[(np.abs(x - 0.5) > 0.1) & (np.abs(x + 1.0) > 0.15)].any()
+    assert halo.blocked[on_pane].all() and halo.blocked[on_wall].all()
+    assert not halo.blocked[fringe].any()          # the fringe lies within 0.1 m of the wall
     assert low.blocked.all()                       # counted from 5 cm, the fuzz blocks it all
 
 

@@ -4,9 +4,9 @@ For each room (``tasks.navigate``'s capture and training, cached as the task cac
 field's floor map is made at every threshold and compared with the true map
 (``tasks.nav_map.map_agreement``: IoU, phantom and missed cells, standable floor kept and
 wrong, and the share of the transparent obstacles' cells blocked), with the share of the free
-floor (over 0.25 m from obstacles) whose density reaches the lowest threshold, by height. The default threshold
-(:func:`nerfbot.query.density.default_obstacle_threshold`) and the depth sensor's map are
-reported beside. The field's density inside the declared obstacles is printed too (over
+floor (over 0.25 m from obstacles) whose density reaches the lowest threshold, by height. The
+default threshold (:func:`nerfbot.query.density.default_obstacle_threshold`) and the depth
+sensor's map are reported beside. The field's density inside the declared obstacles is printed too (over
 grids of points 2 cm apart filling their boxes from 0.1 to 0.5 m above the floor, pooled
 over the transparent and over the opaque ones: the median, and the share of points at 5 /m
 or more, the glassware family's Dex-NeRF threshold): what threshold could find them.
@@ -16,7 +16,8 @@ threshold counted from ``--glass-clearance`` above the floor up
 
 usage: python docs/benchmarks/nav_threshold_sweep.py OUT [--scene room_glass] [--seed 1000]
            [--scenes 1] [--thresholds 1,2,3,4,6,8,12] [--glass-thresholds 0.25,0.5,1]
-           [--glass-clearance 0.2] [--train-steps 2000] [--option KEY=VALUE ...]
+           [--glass-clearance 0.2] [--glass-halo 0.1] [--train-steps 2000]
+           [--option KEY=VALUE ...]
 """
 import argparse
 import json
@@ -52,6 +53,8 @@ parser.add_argument("--glass-thresholds", default="",
                     help="second, lower thresholds (1/m) of the default map, comma-separated")
 parser.add_argument("--glass-clearance", type=float, default=0.2,
                     help="height (m) from which a glass threshold counts")
+parser.add_argument("--glass-halo", type=float, default=NavTaskConfig.glass_halo,
+                    help="a glass threshold ignores cells this close (m) to the default's")
 parser.add_argument("--train-steps", type=int, default=NavTaskConfig.train_steps)
 parser.add_argument("--option", action="append", default=[], type=parse_option,
                     help="field option of the training runs, as tasks.navigate takes it")
@@ -59,7 +62,8 @@ args = parser.parse_args()
 thresholds = [float(t) for t in args.thresholds.split(",")]
 glass_thresholds = [float(t) for t in args.glass_thresholds.split(",") if t]
 cfg = NavTaskConfig(scene=args.scene, train_options={**NAV_FIELD_OPTIONS, **dict(args.option)},
-                    glass_clearance=args.glass_clearance, train_steps=args.train_steps)
+                    glass_clearance=args.glass_clearance, glass_halo=args.glass_halo,
+                    train_steps=args.train_steps)
 args.out.mkdir(parents=True, exist_ok=True)
 
 
@@ -132,7 +136,8 @@ for seed in range(args.seed, args.seed + args.scenes):
         for g in glass_thresholds:
             fmap = field_floor_map(model, world, replace(cfg, glass_threshold=g))
             rows.append({"scene": name, "map": "nerf+glass", "threshold": default,
-                         "glass_threshold": g, "default": False,
+                         "glass_threshold": g, "glass_halo": args.glass_halo,
+                         "default": False,
                          **map_agreement(fmap, truth, radius, glass)})
         fmap = sensor_floor_map(ensure_capture(cfg, seed), world, cfg)
         rows.append({"scene": name, "map": "sensor", "threshold": None, "default": False,
@@ -147,7 +152,8 @@ for r in rows:
         continue
     t = "" if r["threshold"] is None else f"{r['threshold']:.1f}" + (" (default)" if r["default"] else "")
     if "glass_threshold" in r:
-        t += f" + {r['glass_threshold']:g} from {args.glass_clearance:g} m"
+        t += f" + {r['glass_threshold']:g} from {args.glass_clearance:g} m, " \
+            f"{args.glass_halo:g} m from it"
     print(f"| `{r['scene']}` | {r['map']} | {t} | "
           + " | ".join(f"{r[k]:.3f}" if k in r else "" for k in KEYS) + " |")
 (args.out / "sweep.json").write_text(json.dumps(rows, indent=1))
