@@ -27,9 +27,10 @@ For each of ``--scenes`` room seeds (``--seed`` on):
 
 Glass (``--scene room_glass``) is an obstacle the depth sensor's map misses (its pulses pass
 through); a field map counts faint density as obstacle at a low ``--threshold`` (Dex-NeRF's),
-or at a second, lower ``--glass-threshold`` from ``--glass-clearance`` above the floor up,
-as far as the field holds the glass at all (BENCHMARKS.md, section 9). Map records carry the
-share of the transparent obstacles' cells the map blocks.
+or at a second, lower ``--glass-threshold`` from ``--glass-clearance`` above the floor up
+and ``--glass-halo`` away from dense surfaces, as far as the field holds the glass at all
+(BENCHMARKS.md, section 9). Map records carry the share of the transparent obstacles' cells
+the map blocks.
 
 Outputs in ``--out``: ``log.json`` (every trial), ``summary.json`` and one top-down PNG per
 trial in ``trials/`` (map, planned and driven paths, contacts).

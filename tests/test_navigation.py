@@ -316,6 +316,8 @@ class PaneField(nn.Module):
 
 
 class PaneModel(nn.Module):
+    """:class:`PaneField` with the bounds of a room (no occupancy grid)."""
+
     def __init__(self):
         super().__init__()
         self.register_buffer("aabb", torch.tensor([[-4.0, -4.0, -0.1], [4.0, 4.0, 3.0]]))

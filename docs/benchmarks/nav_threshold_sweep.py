@@ -6,13 +6,14 @@ field's floor map is made at every threshold and compared with the true map
 wrong, and the share of the transparent obstacles' cells blocked), with the share of the free
 floor (over 0.25 m from obstacles) whose density reaches the lowest threshold, by height. The
 default threshold (:func:`nerfbot.query.density.default_obstacle_threshold`) and the depth
-sensor's map are reported beside. The field's density inside the declared obstacles is printed too (over
-grids of points 2 cm apart filling their boxes from 0.1 to 0.5 m above the floor, pooled
-over the transparent and over the opaque ones: the median, and the share of points at 5 /m
-or more, the glassware family's Dex-NeRF threshold): what threshold could find them.
-With ``--glass-thresholds``, the default map is also made with each as its second, lower
-threshold counted from ``--glass-clearance`` above the floor up
-(``NavTaskConfig.glass_threshold``). Writes OUT/sweep.json and OUT/sweep.png.
+sensor's map are reported beside. The field's density inside the declared obstacles is
+printed too (over grids of points 2 cm apart filling their boxes from 0.1 to 0.5 m above the
+floor, pooled over the transparent and over the opaque ones: the median, and the share of
+points at 5 /m or more, the glassware family's Dex-NeRF threshold): what threshold could find
+them. With ``--glass-thresholds``, the default map is also made with each as its second,
+lower threshold counted from ``--glass-clearance`` above the floor up and ``--glass-halo``
+away from the default's obstacles (``NavTaskConfig.glass_threshold``). Writes OUT/sweep.json
+and OUT/sweep.png.
 
 usage: python docs/benchmarks/nav_threshold_sweep.py OUT [--scene room_glass] [--seed 1000]
            [--scenes 1] [--thresholds 1,2,3,4,6,8,12] [--glass-thresholds 0.25,0.5,1]
@@ -51,7 +52,7 @@ parser.add_argument("--scenes", type=int, default=1)
 parser.add_argument("--thresholds", default="1,2,3,4,6,8,12")
 parser.add_argument("--glass-thresholds", default="",
                     help="second, lower thresholds (1/m) of the default map, comma-separated")
-parser.add_argument("--glass-clearance", type=float, default=0.2,
+parser.add_argument("--glass-clearance", type=float, default=NavTaskConfig.glass_clearance,
                     help="height (m) from which a glass threshold counts")
 parser.add_argument("--glass-halo", type=float, default=NavTaskConfig.glass_halo,
                     help="a glass threshold ignores cells this close (m) to the default's")
