@@ -66,6 +66,8 @@ for seed in range(args.seed, args.seed + args.scenes):
             covered.append(float(mask.mean()))
     finally:
         camera.close()
+    if not veil:
+        raise SystemExit(f"{name}: no training view shows its glass on 5 % of the image")
     v = np.concatenate(veil)
     row = {"scene": name, "views": len(veil), "glass_share": float(np.mean(covered)),
            "veil_mean": float(v.mean()), "veil_median": float(np.median(v)),
