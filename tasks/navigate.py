@@ -8,8 +8,8 @@ For each of ``--scenes`` room seeds (``--seed`` on):
    rig) and ``ngp`` is trained on the images, unless cached runs exist;
 2. a floor map is made for a cylindrical base (:mod:`tasks.nav_map`) from ``--map``:
 
-   - ``nerf``: the field's density on a 3D grid over the room, thresholded
-     (:func:`nerfbot.query.density.occupancy_volume`);
+   - ``nerf``: the field's density on a 3D grid over the room
+     (:func:`nerfbot.query.density.density_grid`), thresholded;
    - ``sensor``: the depth sensor's readings of the training views fused into a TSDF (open3d);
    - ``gt``: the scene's true geometry;
 
@@ -58,7 +58,8 @@ import sims  # noqa: F401  (selects the GL backend before mujoco is imported)
 from nerfbot.app.cli import parse_option
 from nerfbot.data import load_dataset
 from nerfbot.data.writers import write_json_atomic
-from nerfbot.query.density import OccupancyVolume, grid_points, occupancy_volume
+from nerfbot.query.density import (OccupancyVolume, default_obstacle_threshold, density_grid,
+                                    grid_points)
 from nerfbot.query.localise import InerfConfig, WideConfig, inerf, localise_wide
 from nerfbot.train.checkpoints import CHECKPOINT
 from nerfbot.train.runs import load_model
@@ -120,8 +121,8 @@ class NavTaskConfig:
     :data:`NAV_FIELD_OPTIONS`)."""
     map_cell: float = 0.05
     threshold: Optional[float] = None
-    """Obstacle density threshold of a field map, 1/m (None: the default of
-    :func:`nerfbot.query.density.occupancy_volume`)."""
+    """Obstacle density threshold of a field map, 1/m (None:
+    :func:`nerfbot.query.density.default_obstacle_threshold`)."""
     map_floor_clearance: float = 0.1
     """A field map ignores density this close to the floor (metres; the base's own clearance,
     :attr:`tasks.nav_map.RobotBody.floor_clearance`, if higher): a field's floor is a few
@@ -331,30 +332,30 @@ def field_floor_map(model, world: World, cfg: NavTaskConfig) -> FloorMap:
     from ``map_floor_clearance`` up, or ``glass_threshold`` from ``glass_clearance`` up
     farther than ``glass_halo`` from the cells the first threshold blocks."""
     bounds, resolution = map_grid(world, cfg)
-    blocked = _blocked_cells(model, bounds, resolution, cfg, cfg.threshold,
-                             cfg.map_floor_clearance)
+    bands = [(default_obstacle_threshold(model) if cfg.threshold is None else cfg.threshold,
+              cfg.map_floor_clearance)]
     if cfg.glass_threshold is not None:
-        faint = _blocked_cells(model, bounds, resolution, cfg, cfg.glass_threshold,
-                               cfg.glass_clearance)
-        if cfg.glass_halo > 0 and blocked.any():
-            faint &= ndimage.distance_transform_edt(~blocked, sampling=cfg.map_cell) \
-                > cfg.glass_halo + 1e-9
-        blocked = blocked | faint
-    return FloorMap(blocked, bounds[0, :2], cfg.map_cell)
-
-
-def _blocked_cells(model, bounds: np.ndarray, resolution: int, cfg: NavTaskConfig,
-                   threshold: Optional[float], clearance: float) -> np.ndarray:
-    """(X, Y) bool: cells where the density reaches ``threshold`` (None: the default) at any
-    of :data:`CELL_TESTS` between ``clearance`` above the floor and the base's top."""
-    body = replace(cfg.body, floor_clearance=max(cfg.body.floor_clearance, clearance))
-    blocked = None
+        bands.append((cfg.glass_threshold, cfg.glass_clearance))
+    for threshold, _ in bands:
+        if not (np.isfinite(threshold) and threshold > 0):
+            raise ValueError(f"obstacle threshold must be finite and > 0 (1/m), got {threshold}")
+    blocked = [None] * len(bands)
     for offset in itertools.product(CELL_TESTS, repeat=3):
         shifted = bounds + np.asarray(offset) * cfg.map_cell
-        fmap = floor_map_from_volume(occupancy_volume(model, shifted, resolution, threshold),
-                                     body)
-        blocked = fmap.blocked if blocked is None else blocked | fmap.blocked
-    return blocked
+        density, spacing = density_grid(model, shifted, resolution)
+        for k, (threshold, clearance) in enumerate(bands):
+            body = replace(cfg.body, floor_clearance=max(cfg.body.floor_clearance, clearance))
+            volume = OccupancyVolume(density >= threshold, shifted[0], spacing, threshold)
+            cells = floor_map_from_volume(volume, body).blocked
+            blocked[k] = cells if blocked[k] is None else blocked[k] | cells
+    dense = blocked[0]
+    if len(bands) > 1:
+        faint = blocked[1]
+        if cfg.glass_halo > 0 and dense.any():
+            faint &= ndimage.distance_transform_edt(~dense, sampling=cfg.map_cell) \
+                > cfg.glass_halo + 1e-9
+        dense = dense | faint
+    return FloorMap(dense, bounds[0, :2], cfg.map_cell)
 
 
 def sensor_floor_map(data: Path, world: World, cfg: NavTaskConfig) -> FloorMap:
