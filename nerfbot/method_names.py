@@ -22,6 +22,8 @@ DESCRIPTIONS = {
     "dnerf": "D-NeRF: deformation (space-time planes) into a canonical NGP field",
     "kplanes": "static NGP field + K-Planes space-time planes for what moves (densities "
                "added)",
+    "rigid": "kplanes + one small field per moving rigid body, carried along a track of poses "
+             "that starts from the segmentation and trains",
     "articulated": "one NGP field per rigid part, placed by forward kinematics of the joints",
     "plenoctree": "PlenOctrees' NeRF-SH: hash grid -> density + SH colour (no direction "
                   "input); bake with `nerfbot bake --octree`",

@@ -33,6 +33,7 @@ from nerfbot.fields.mipnerf import MipNeRFField, MipNeRFFieldConfig
 from nerfbot.fields.nerf import NeRFField, NeRFFieldConfig
 from nerfbot.fields.nerfsh import NeRFSHField, NeRFSHFieldConfig
 from nerfbot.fields.ngp import NGPField, NGPFieldConfig
+from nerfbot.fields.rigid import RigidField, RigidFieldConfig
 from nerfbot.fields.plenoxels import PlenoxelField, PlenoxelFieldConfig
 from nerfbot.fields.tensorf import TensoRFField, TensoRFFieldConfig
 from nerfbot.fields.tnerf import TNeRFField, TNeRFFieldConfig
@@ -160,6 +161,12 @@ def _conditioned_ngp_build(field_cls) -> Callable[..., Model]:
         field = field_cls(aabb, conditioning, ngp_config, own_config, seed=seed)
         return OccupancyModel(field, make_background(background), aabb, renderer)
     return build
+
+
+def _rigid_build(aabb, background, configs, seed, conditioning) -> Model:
+    ngp_config, kplanes_config, rigid_config, renderer = configs
+    field = RigidField(aabb, conditioning, ngp_config, kplanes_config, rigid_config, seed=seed)
+    return OccupancyModel(field, make_background(background), aabb, renderer)
 
 
 def _build_nerf(aabb, background, configs, seed, conditioning) -> Model:
@@ -314,6 +321,9 @@ register_method("dnerf", conditioned_ngp_method(DNeRFField, DNeRFFieldConfig()))
 register_method("kplanes", MethodSpec(
     _conditioned_ngp_build(KPlanesField), lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
     configs=(NGPFieldConfig(), KPlanesFieldConfig(), KPLANES_RENDERER)))
+register_method("rigid", MethodSpec(
+    _rigid_build, lr=1e-2, adam_eps=1e-15, lr_final_factor=0.1,
+    configs=(NGPFieldConfig(), KPlanesFieldConfig(), RigidFieldConfig(), KPLANES_RENDERER)))
 register_method("articulated",
                 conditioned_ngp_method(ArticulatedField, ArticulatedFieldConfig()))
 register_method("plenoctree", MethodSpec(

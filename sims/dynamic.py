@@ -14,7 +14,8 @@ split (:func:`held_out_steps`: every ``test_every``-th step, starting at ``test_
 they are interior times never seen in training; a monocular camera at a held-out time is also a
 view never seen in training). The manifest says ``time_varying: true`` and lists the
 ``moving_joints`` (joints that moved more than :data:`MOTION_THRESHOLD`), ``joint_bodies`` (joint
--> the bodies it moves), ``joint_info`` (see :func:`sims.joints.joint_info`) and ``capture`` (how
+-> the bodies it moves), ``moving_bodies`` (each of those bodies -> the ids of its own geoms,
+for reading the segmentation per rigid body), ``joint_info`` (see :func:`sims.joints.joint_info`) and ``capture`` (how
 it was captured); its ``bounds`` cover the content over the whole rollout. ``states.npz`` next
 to ``transforms.json`` holds the recorded states (see :func:`capture_dynamic`).
 """
@@ -30,7 +31,7 @@ import numpy as np
 from nerfbot.data.outputs import check_output_folder
 from sims.capture import (View, _scene_source, set_lighting, check_views,
                           write_views)
-from sims.joints import joint_bodies, joint_info
+from sims.joints import body_geoms, joint_bodies, joint_info
 from sims.manifest import scene_manifest
 from sims.rollout import moving_joints, reset_to_initial_state, rollout
 from sims.sensor import DepthSensorModel
@@ -140,6 +141,8 @@ def capture_dynamic(scene: str | Path, rig: SequenceRig, out_dir: Path,
     meta["bounds"] = union_bounds(model, data, roll.qpos).tolist()
     meta["lighting"] = lighting
     meta["joint_bodies"] = joint_bodies(model, moving)
+    meta["moving_bodies"] = body_geoms(
+        model, sorted({b for bodies in meta["joint_bodies"].values() for b in bodies}))
     meta["joint_info"] = joint_info(model, moving)
     meta["capture"] = {
         "kind": "dynamic", "rig": rig.kind, "views_per_frame": rig.views_per_step,

@@ -62,6 +62,18 @@ def joint_bodies(model: mujoco.MjModel, names: Iterable[str]) -> dict[str, list[
     return out
 
 
+def body_geoms(model: mujoco.MjModel, bodies: Iterable[str]) -> dict[str, list[int]]:
+    """Body name -> ids of the geoms attached to that body itself (not its descendants), in
+    model order; bodies without geoms are left out."""
+    out = {}
+    for name in bodies:
+        b = next(i for i in range(model.nbody) if body_name(model, i) == name)
+        ids = [g for g in range(model.ngeom) if int(model.geom_bodyid[g]) == b]
+        if ids:
+            out[str(name)] = ids
+    return out
+
+
 def joint_range(model: mujoco.MjModel, name: str) -> tuple[float, float] | None:
     """(lo, hi) limits of a hinge / slide joint (radians / metres), None if it is unlimited."""
     j = joint_id(model, name)

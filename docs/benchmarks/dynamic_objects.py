@@ -7,7 +7,8 @@ dynamic capture, then scored where things move.
 A method written ``NAME/VARIANT`` is trained into ``run_<capture>_NAME_VARIANT`` with the
 variant's flags (:data:`VARIANTS`): ``uniform`` rays (``--dynamic-rays 0``), ``warmup``
 (``--option dynamic_warmup=0.2``, kplanes' static part alone first), or ``errors`` (half the
-rays by the training error instead of the images' change: ``--error-rays 0.5``).
+rays by the training error instead of the images' change: ``--error-rays 0.5``), or, for
+``rigid``, ``static`` (a static scene around the parts: ``--option moving_scene=false``).
 
 ``BENCH/<capture>`` holds the captures made by the commands in BENCHMARKS.md. Each method is
 trained alone (``nerfbot train --max-seconds S``) into ``BENCH/run_<capture>_<method>`` (kept
@@ -51,7 +52,8 @@ HERE = Path(__file__).resolve().parent
 #: The training flags of a method written NAME/VARIANT.
 VARIANTS = {"": [], "uniform": ["--dynamic-rays", "0"],
             "warmup": ["--option", "dynamic_warmup=0.2"],
-            "errors": ["--dynamic-rays", "0", "--error-rays", "0.5"]}
+            "errors": ["--dynamic-rays", "0", "--error-rays", "0.5"],
+            "static": ["--option", "moving_scene=false"]}
 
 
 def object_mask(dataset, i: int) -> np.ndarray:

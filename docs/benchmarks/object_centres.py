@@ -14,6 +14,11 @@ and every moving object of its manifest (``objects``: geoms whose bodies move):
 - the truth: the geom's centre from the body pose MuJoCo recorded (``states.npz``) and the
   geom's offset in its body.
 
+For ``rigid`` runs, the centre of each body's part at the step's time (its trained track,
+:meth:`nerfbot.fields.rigid.RigidField.part_centres`) is also compared with the truth, for the
+objects that are their body's only geom (the track follows the body's masks, not one geom's
+centre).
+
 For runs whose field is a deformation (``dnerf``), the field's points of each object are also
 moved to the next captured step by the field's scene flow (:func:`nerfbot.query.motion.
 point_motion`), and their mean displacement is compared with the geom centre's in MuJoCo.
@@ -85,6 +90,12 @@ def measure(run: Path) -> dict:
     flows = hasattr(model.field, "deformation")
     ids = {name: int(k) for k, name in ds.manifest["geoms"].items()
            if name in ds.manifest["objects"]}
+    tracked = {}  # object -> the body whose part tracks it alone
+    if hasattr(model.field, "part_centres"):
+        for body, geoms in (ds.manifest.get("moving_bodies") or {}).items():
+            for name, g in ids.items():
+                if geoms == [g]:
+                    tracked[name] = body
     steps: dict[int, list[int]] = {}
     for i in ds.indices("test"):
         steps.setdefault(int(state_of[i]), []).append(i)
@@ -116,6 +127,10 @@ def measure(run: Path) -> dict:
                    "field_cm": 100 * float(np.linalg.norm(f_c - truth)),
                    "depth_maps_cm": 100 * float(np.linalg.norm(t_c - truth)),
                    "field_vs_depth_maps_cm": 100 * float(np.linalg.norm(f_c - t_c))}
+            if name in tracked:
+                t_step = torch.tensor([float(ds.times[frames[0]])])
+                track = model.field.part_centres(t_step)[tracked[name]][0].numpy()
+                row["track_cm"] = 100 * float(np.linalg.norm(track - truth))
             if flows and s + 1 < len(step_times):
                 moved = point_motion(model, torch.as_tensor(f, dtype=torch.float32),
                                      float(ds.times[frames[0]]), float(step_times[s + 1]))
@@ -137,9 +152,11 @@ def summary(result: dict) -> list[str]:
         flow = [(r["flow_error_cm"], r["true_motion_cm"]) for r in rows if "flow_error_cm" in r]
         flow_text = (f"{np.median([a for a, _ in flow]):.2f} / {np.max([a for a, _ in flow]):.2f}"
                      f" (moved {np.median([b for _, b in flow]):.2f})") if flow else "–"
+        track = [r["track_cm"] for r in rows if "track_cm" in r]
+        track_text = f"{np.median(track):.2f} / {np.max(track):.2f}" if track else "–"
         lines.append(f"| {Path(result['run']).name} | {name} | {len(rows)} | "
                      + " | ".join(f"{np.median(c):.2f} / {c.max():.2f}" for c in cols)
-                     + f" | {flow_text} |")
+                     + f" | {flow_text} | {track_text} |")
     return lines
 
 
@@ -170,8 +187,9 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     results = [measure(run) for run in args.runs]
     print("| run | object | steps | field vs MuJoCo, cm (median / max) | depth maps vs MuJoCo "
-          "| field vs depth maps | scene flow to the next step vs MuJoCo |")
-    print("|---|---|---|---|---|---|---|")
+          "| field vs depth maps | scene flow to the next step vs MuJoCo | the part's track "
+          "vs MuJoCo |")
+    print("|---|---|---|---|---|---|---|---|")
     for r in results:
         print("\n".join(summary(r)))
     plot(results, HERE / f"{args.out}.png")

@@ -17,6 +17,7 @@ import torch
 
 from nerfbot.data.errors import DatasetError
 from nerfbot.data.spec import joint_range
+from nerfbot.data.tracks import estimate_tracks
 
 KINDS = ("static", "time", "joints")
 
@@ -35,6 +36,9 @@ class Conditioning:
         part_bounds: list of rigid parts moved by joints, each {"joints": [outer .. inner],
             "bodies": [...], "bounds": [[min], [max]]} in the rest (``qpos0``) world frame; []
             when the manifest has none.
+        object_tracks: the moving rigid bodies of a time-conditioned capture and where its
+            training frames' segmentation puts them at each training time step
+            (:func:`nerfbot.data.tracks.estimate_tracks`); [] when it has none.
     """
 
     kind: str = "static"
@@ -42,6 +46,7 @@ class Conditioning:
     ranges: tuple = ()
     joint_info: dict = field(default_factory=dict)
     part_bounds: list = field(default_factory=list)
+    object_tracks: list = field(default_factory=list)
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -70,7 +75,8 @@ class Conditioning:
         return cls(kind=d["kind"], names=tuple(d["names"]),
                    ranges=tuple(tuple(float(v) for v in r) for r in d["ranges"]),
                    joint_info=dict(d.get("joint_info") or {}),
-                   part_bounds=list(d.get("part_bounds") or []))
+                   part_bounds=list(d.get("part_bounds") or []),
+                   object_tracks=list(d.get("object_tracks") or []))
 
     def _lo_span(self, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         r = torch.as_tensor(self.ranges, dtype=like.dtype, device=like.device).reshape(-1, 2)
@@ -123,7 +129,8 @@ def dataset_conditioning(dataset) -> Conditioning:
     """
     manifest = dataset.manifest or {}
     if dataset.times is not None:
-        return Conditioning("time", ("time",), ((0.0, 1.0),))
+        return Conditioning("time", ("time",), ((0.0, 1.0),),
+                            object_tracks=estimate_tracks(dataset))
     if dataset.joints is None:
         return Conditioning()
     where = f"{_source(dataset)}: scene"

@@ -308,7 +308,8 @@ def manifest_value(meta: dict, json_path: Path) -> Optional[dict]:
     The keys nerfbot reads are type-checked here (``bounds`` when the bounds are chosen):
     ``objects``, ``transparent_geoms``, ``moving_joints`` (lists of names), ``geoms`` (geom id
     -> name), ``joint_info`` (joint name -> object, see :func:`joint_range`) and
-    ``part_bounds`` (list of {"joints": [names], "bounds": [[min], [max]]}).
+    ``part_bounds`` (list of {"joints": [names], "bounds": [[min], [max]]}) and
+    ``moving_bodies`` (body name -> list of geom ids).
     """
     scene = meta.get("scene")
     if scene is None:
@@ -326,6 +327,8 @@ def manifest_value(meta: dict, json_path: Path) -> Optional[dict]:
         _joint_info(scene["joint_info"], f"{where}.joint_info")
     if scene.get("part_bounds") is not None:
         _part_bounds(scene["part_bounds"], f"{where}.part_bounds")
+    if scene.get("moving_bodies") is not None:
+        _moving_bodies(scene["moving_bodies"], f"{where}.moving_bodies")
     return scene
 
 
@@ -344,6 +347,17 @@ def _geom_names(value: Any, where: str) -> None:
         if not key.lstrip("-").isdigit() or not (name is None or isinstance(name, str)):
             raise DatasetError(f"{where}.{key}: expected an integer geom id naming a geom, "
                                f"got {key!r}: {name!r}")
+
+
+def _moving_bodies(value: Any, where: str) -> None:
+    """body name -> list of integer geom ids."""
+    if not isinstance(value, dict):
+        raise DatasetError(f"{where}: expected an object body name -> geom ids, got {value!r}")
+    for name, ids in value.items():
+        if not isinstance(ids, list) or not all(
+                isinstance(g, int) and not isinstance(g, bool) for g in ids):
+            raise DatasetError(f"{where}.{name}: expected a list of integer geom ids, "
+                               f"got {ids!r}")
 
 
 def joint_range(value: Any, where: str) -> Optional[tuple[float, float]]:

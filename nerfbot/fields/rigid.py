@@ -1,0 +1,230 @@
+"""A dynamic scene as a K-Planes scene plus its moving rigid bodies, each a small field of its
+own carried along a track of poses.
+
+    sigma(x, t) = sigma_scene(x, t) + sum_k sigma_k(y_k),   y_k = R_k(t)^T (x - c_k(t)) / s_k
+    colour      = the scene's colour MLP of the density-weighted mean of the parts' geometry
+                  features, and the view
+
+The scene is the ``kplanes`` field (static ngp field + space-time planes: shadows and whatever
+moves without a track). Each body k is a dense multi-level feature grid over the cube
+[-1, 1]^3 of half-edge s_k around its centre, a density MLP, and a pose per training time step:
+a centre c_k and an axis-angle rotation, both trained. Between steps (a held-out time) the pose
+is interpolated linearly, so the body moves there instead of cross-fading.
+
+Why: space-time planes hold a small object separately at every time step, so each of its
+pixels is trained by the few rays of that step (BENCHMARKS.md, section 4, "How many rays the
+moving objects get"). A part pools the body's appearance over all steps and views.
+
+The tracks start where the training frames' segmentation puts each body
+(:func:`nerfbot.data.tracks.estimate_tracks`, carried in the run's conditioning); rotations
+start at zero. Poses then train with the photometric loss through the grids' trilinear
+interpolation (which has a gradient with respect to position).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from nerfbot.data.conditioning import Conditioning
+from nerfbot.fields.base import Field, mlp, trunc_exp
+from nerfbot.fields.kplanes import KPlanesField, KPlanesFieldConfig
+from nerfbot.fields.ngp import NGPField, NGPFieldConfig
+from nerfbot.ops.lie import so3_exp, so3_log
+
+#: Points per chunk of an occupancy update's nearest-step search over a part's track.
+_OCCUPANCY_CHUNK = 1 << 15
+
+
+@dataclass
+class RigidFieldConfig:
+    part_levels: int = 3
+    """Resolution levels of each part's feature grid (each coarser level halves the cells)."""
+    part_resolution: int = 64
+    """Cells per axis of a part's finest level, over its cube of half-edge ``extent``."""
+    part_features: int = 4
+    """Features per level and cell."""
+    part_hidden: int = 64
+    """Width of a part's density MLP (one hidden layer)."""
+    part_initial_transmittance: float = 0.5
+    """Transmittance of a ray crossing a part's cube along its diagonal at initialisation."""
+    pose_lr_scale: float = 0.1
+    """Learning rate of the poses relative to the method's (metres and radians per step, about,
+    under Adam)."""
+    moving_scene: bool = True
+    """The scene around the parts is ``kplanes`` (static field + space-time planes: shadows,
+    bodies without a track, what a part's pose misses); False: a static ngp field, so
+    everything that moves must be a part."""
+
+    def __post_init__(self):
+        for name in ("part_levels", "part_resolution", "part_features", "part_hidden"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        if not 0.0 < self.part_initial_transmittance < 1.0:
+            raise ValueError(f"part_initial_transmittance must be in (0, 1), got "
+                             f"{self.part_initial_transmittance}")
+        if not 0.0 <= self.pose_lr_scale < math.inf:
+            raise ValueError(f"pose_lr_scale must be >= 0 and finite, got {self.pose_lr_scale}")
+
+
+class RigidPart(nn.Module):
+    """One rigid body: a feature grid and density MLP in its own frame, and its track.
+
+    Attributes:
+        times: (J,) buffer, the training time steps in [0, 1], sorted.
+        centres: (J, 3) parameter, the body's centre at each step, metres.
+        rotations: (J, 3) parameter, axis-angle of the body's rotation from its frame to the
+            world at each step, radians.
+        extent: half-edge of the part's cube, metres.
+    """
+
+    def __init__(self, track: dict, cfg: RigidFieldConfig, geo_feat_dim: int, seed: int):
+        super().__init__()
+        self.name = str(track["name"])
+        self.extent = float(track["extent"])
+        self.register_buffer("times", torch.tensor(track["times"], dtype=torch.float32))
+        self.centres = nn.Parameter(torch.tensor(track["centres"], dtype=torch.float32))
+        rotations = track.get("rotations")
+        self.rotations = nn.Parameter(torch.zeros_like(self.centres) if rotations is None
+                                      else torch.tensor(rotations, dtype=torch.float32))
+        gen = torch.Generator().manual_seed(seed)
+        self.grids = nn.ParameterList([
+            nn.Parameter(1e-4 * (2 * torch.rand(1, cfg.part_features, r, r, r, generator=gen) - 1))
+            for r in (max(2, cfg.part_resolution >> (cfg.part_levels - 1 - lvl))
+                      for lvl in range(cfg.part_levels))])
+        self.mlp = mlp(cfg.part_features * cfg.part_levels, cfg.part_hidden, 1, 1 + geo_feat_dim)
+        diagonal = 2.0 * math.sqrt(3.0) * self.extent
+        self.density_bias = math.log(-math.log(cfg.part_initial_transmittance) / diagonal)
+
+    def pose(self, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rotations (N, 3, 3) body -> world and centres (N, 3) at times t (N,) between the two
+        neighbouring steps: the centre linearly, the rotation along the shortest turn from one
+        step's to the next (``R_lo exp(w log(R_lo^T R_hi))``); the end steps' poses beyond
+        them."""
+        times = self.times.to(t.dtype)
+        if times.numel() == 1:
+            n = t.shape[0]
+            return (so3_exp(self.rotations).expand(n, 3, 3),
+                    self.centres.expand(n, 3))
+        # the samples of a ray, and every ray of a rendered image, share one time
+        t, which = torch.unique(t, return_inverse=True)
+        hi = torch.searchsorted(times, t.contiguous()).clamp(1, times.numel() - 1)
+        lo = hi - 1
+        w = ((t - times[lo]) / (times[hi] - times[lo])).clamp(0.0, 1.0)[:, None]
+        centre = self.centres[lo] + w * (self.centres[hi] - self.centres[lo])
+        step_rot = so3_exp(self.rotations)  # (J, 3, 3)
+        turn = so3_log(step_rot[:-1].transpose(1, 2) @ step_rot[1:])  # (J - 1, 3)
+        rot = step_rot[lo] @ so3_exp(w * turn[lo])
+        return rot[which], centre[which]
+
+    def local(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """World points x (N, 3) at times t (N,) -> (N, 3) in the part's cube ([-1, 1]^3 holds
+        the body)."""
+        rot, centre = self.pose(t)
+        return torch.einsum("nji,nj->ni", rot, x - centre) / self.extent
+
+    def forward(self, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """y (M, 3) inside the part's cube -> sigma (M,) 1/m, geometry features (M, C)."""
+        coords = y.reshape(1, 1, 1, -1, 3)
+        feats = [F.grid_sample(g, coords, mode="bilinear", padding_mode="border",
+                               align_corners=True).reshape(g.shape[1], -1).T
+                 for g in self.grids]
+        h = self.mlp(torch.cat(feats, -1))
+        return trunc_exp(h[:, 0] + self.density_bias), h[:, 1:]
+
+
+class RigidField(Field):
+    """``kplanes`` scene + one :class:`RigidPart` per tracked body; ``cond`` (N, 1) time in
+    [0, 1] (None: t = 0)."""
+
+    def __init__(self, aabb, conditioning: Conditioning, config: NGPFieldConfig | None = None,
+                 kconfig: KPlanesFieldConfig | None = None,
+                 rconfig: RigidFieldConfig | None = None, seed: int = 0):
+        super().__init__()
+        if not conditioning.object_tracks:
+            raise ValueError(
+                "rigid needs the tracks of the moving bodies, which come from a dynamic "
+                "capture's segmentation and its manifest's moving_bodies (`nerfbot capture "
+                "--scene dynamic` writes both); this capture gives none")
+        self.conditioning = conditioning
+        self.rconfig = rc = rconfig or RigidFieldConfig()
+        if rc.moving_scene:
+            self.scene = KPlanesField(aabb, conditioning, config, kconfig, seed=seed)
+            self.ngp_config = self.scene.static.config
+        else:
+            self.scene = NGPField(aabb, config, seed=seed)
+            self.ngp_config = self.scene.config
+        geo = self.ngp_config.geo_feat_dim
+        self.parts = nn.ModuleList(RigidPart(track, rc, geo, seed + 10 + k)
+                                   for k, track in enumerate(conditioning.object_tracks))
+
+    def _time(self, cond: Optional[torch.Tensor], x: torch.Tensor) -> torch.Tensor:
+        return x.new_zeros(x.shape[0]) if cond is None else cond[:, 0].to(x.dtype)
+
+    def density(self, x: torch.Tensor, cond: Optional[torch.Tensor] = None):
+        sigma, geo = self.scene.density(x, cond)
+        t = self._time(cond, x)
+        total, weighted = sigma, sigma[:, None] * geo
+        for part in self.parts:
+            y = part.local(x, t)
+            idx = (y.abs() < 1.0).all(-1).nonzero().squeeze(1)
+            if idx.numel() == 0:
+                continue
+            s, g = part(y[idx])
+            total = total.index_add(0, idx, s)
+            weighted = weighted.index_add(0, idx, s[:, None] * g)
+        feat = torch.where(total[:, None] > 0, weighted / total.clamp_min(1e-30)[:, None], geo)
+        return total, feat
+
+    def color(self, feat: torch.Tensor, d: torch.Tensor, cond: Optional[torch.Tensor] = None):
+        return self.scene.color(feat, d, cond)
+
+    def occupancy_density(self, x, generator=None):
+        """The scene's, plus each part's density at the step whose centre is nearest to the point
+        (a point the body ever covers is covered best then)."""
+        sigma = self.scene.occupancy_density(x, generator)
+        for part in self.parts:
+            reach = math.sqrt(3.0) * part.extent
+            centres = part.centres.detach()
+            lo, hi = centres.min(0).values - reach, centres.max(0).values + reach
+            near = ((x >= lo) & (x <= hi)).all(-1).nonzero().squeeze(1)
+            for chunk in near.split(_OCCUPANCY_CHUNK):
+                p = x[chunk]
+                step = torch.cdist(p, centres).argmin(1)
+                y = part.local(p, part.times[step].to(p.dtype))
+                inside = (y.abs() < 1.0).all(-1)
+                if inside.any():
+                    sigma = sigma.index_add(0, chunk[inside], part(y[inside])[0])
+        return sigma
+
+    def before_step(self, step: int, progress: float) -> dict:
+        return self.scene.before_step(step, progress)
+
+    def prunable(self) -> bool:
+        return self.scene.prunable()
+
+    def regularizer(self) -> Optional[torch.Tensor]:
+        return self.scene.regularizer()
+
+    def color_head(self):
+        return self.scene.color_head()
+
+    def param_groups(self) -> list[dict]:
+        grids = [g for part in self.parts for g in part.grids]
+        mlps = [p for part in self.parts for p in part.mlp.parameters()]
+        poses = [p for part in self.parts for p in (part.centres, part.rotations)]
+        return self.scene.param_groups() + [
+            {"params": grids, "lr_scale": 1.0},
+            {"params": mlps, "lr_scale": self.ngp_config.mlp_lr_scale},
+            {"params": poses, "lr_scale": self.rconfig.pose_lr_scale}]
+
+    def part_centres(self, t: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Body name -> (N, 3) its centre at times t (N,), metres (where the field puts it)."""
+        with torch.no_grad():
+            return {part.name: part.pose(t)[1] for part in self.parts}
