@@ -152,7 +152,10 @@ def test_checkpoint_keeps_the_conditioning_and_render_sweeps_time(trained, tmp_p
 
     run = trained["dnerf"][0]
     model, info = load_model(run)
-    assert Conditioning.from_dict(info["spec"]["conditioning"]) == TIME
+    kept = Conditioning.from_dict(info["spec"]["conditioning"])
+    assert (kept.kind, kept.names, kept.ranges) == (TIME.kind, TIME.names, TIME.ranges)
+    # the moving bodies' tracks from the segmentation (what ``rigid`` starts from)
+    assert sorted(t["name"] for t in kept.object_tracks) == ["ball", "can", "crate", "pendulum"]
     video = tmp_path / "sweep.mp4"
     assert main(["render", str(run), "--sweep", "time", "--frames", "5", "--size", "24",
                  "--out", str(video), "--no-progress"]) == 0

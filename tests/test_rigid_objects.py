@@ -103,6 +103,12 @@ def test_the_rigid_field_is_the_scene_away_from_its_parts_and_needs_tracks():
     occ = field.occupancy_density(torch.tensor([[-0.4, 0.0, 0.5], [0.4, 0.2, 0.5]]))
     assert (occ > field.scene.static.density(torch.tensor([[-0.4, 0.0, 0.5],
                                                            [0.4, 0.2, 0.5]]))[0]).all()
+    # around the parts, a static ngp field instead of kplanes
+    from nerfbot.fields.ngp import NGPField
+    still = RigidField(AABB, cond, rconfig=RigidFieldConfig(moving_scene=False))
+    assert isinstance(still.scene, NGPField)
+    sigma2, _ = still.density(centre, mid)
+    assert float(sigma2[0]) > float(still.scene.density(centre)[0])
     with pytest.raises(ValueError, match="moving_bodies"):
         RigidField(AABB, Conditioning("time", ("time",), ((0.0, 1.0),)))
     with pytest.raises(ValueError, match="part_resolution"):

@@ -6,7 +6,7 @@ own carried along a track of poses.
                   features, and the view
 
 The scene is the ``kplanes`` field (static ngp field + space-time planes: shadows and whatever
-moves without a track). Each body k is a dense multi-level feature grid over the cube
+moves without a track), or with ``moving_scene=false`` a static ngp field. Each body k is a dense multi-level feature grid over the cube
 [-1, 1]^3 of half-edge s_k around its centre, a density MLP, and a pose per training time step:
 a centre c_k and an axis-angle rotation, both trained. Between steps (a held-out time) the pose
 is interpolated linearly, so the body moves there instead of cross-fading.
@@ -75,6 +75,10 @@ class RigidFieldConfig:
 
 class RigidPart(nn.Module):
     """One rigid body: a feature grid and density MLP in its own frame, and its track.
+
+    ``track`` is one of :func:`nerfbot.data.tracks.estimate_tracks`' dicts (``name``,
+    ``times``, ``centres``, ``extent``), optionally with ``rotations`` (J, 3), axis-angle, to
+    start the rotations from instead of zero.
 
     Attributes:
         times: (J,) buffer, the training time steps in [0, 1], sorted.
