@@ -42,7 +42,10 @@ JOINTS = Conditioning(
                   "bounds": [[-0.1, -0.1, 0.0], [0.1, 0.1, 0.2]]}])
 CONDITIONING = {"tnerf": Conditioning("time", ("time",), ((0.0, 1.0),)),
                 "dnerf": Conditioning("time", ("time",), ((0.0, 1.0),)),
-                "kplanes": Conditioning("time", ("time",), ((0.0, 1.0),)), "articulated": JOINTS}
+                "kplanes": Conditioning("time", ("time",), ((0.0, 1.0),)), "articulated": JOINTS,
+                "rigid": Conditioning("time", ("time",), ((0.0, 1.0),), object_tracks=[
+                    {"name": "box", "geoms": [0], "times": [0.0, 1.0],
+                     "centres": [[0.0, 0.0, 0.2], [0.1, 0.0, 0.2]], "extent": 0.1}])}
 #: The renderer defaults in which tnerf, dnerf and articulated differ from ngp (the registry's
 #: CONDITIONED_NGP_RENDERER says why they are kept).
 CONDITIONED_RENDERER_DIFFERENCES = {"supersample", "supersample_from", "density_noise",

@@ -96,12 +96,13 @@ def estimate_tracks(dataset, indices=None) -> list[dict]:
     Returns a list, one dict per body seen in at least one frame: ``name``, ``geoms`` (ids),
     ``times`` (J,) the distinct training times, ``centres`` (J, 3) metres, ``extent`` metres
     (half-edge of the cube around each centre that holds the body), ``rays`` (masks used).
-    [] when the manifest names no moving bodies or the frames carry no segmentation. The
-    manifest's ``moving_bodies`` was checked when it was read
-    (:func:`nerfbot.data.spec.manifest_value`).
+    [] when the manifest names no moving bodies, the frames carry no segmentation, or (without
+    ``indices``) the dataset has no training split. The manifest's ``moving_bodies`` was
+    checked when it was read (:func:`nerfbot.data.spec.manifest_value`).
     """
     bodies = (dataset.manifest or {}).get("moving_bodies") or {}
-    if dataset.times is None or not bodies:
+    if (dataset.times is None or not bodies
+            or (indices is None and "train" not in dataset.splits)):
         return []
     idx = list(dataset.indices("train") if indices is None else indices)
     idx = [i for i in idx if dataset.segmentations[i] is not None]
