@@ -33,8 +33,8 @@ from nerfbot.fields.mipnerf import MipNeRFField, MipNeRFFieldConfig
 from nerfbot.fields.nerf import NeRFField, NeRFFieldConfig
 from nerfbot.fields.nerfsh import NeRFSHField, NeRFSHFieldConfig
 from nerfbot.fields.ngp import NGPField, NGPFieldConfig
-from nerfbot.fields.rigid import RigidField, RigidFieldConfig
 from nerfbot.fields.plenoxels import PlenoxelField, PlenoxelFieldConfig
+from nerfbot.fields.rigid import RigidField, RigidFieldConfig
 from nerfbot.fields.tensorf import TensoRFField, TensoRFFieldConfig
 from nerfbot.fields.tnerf import TNeRFField, TNeRFFieldConfig
 from nerfbot.models.base import Model

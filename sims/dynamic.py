@@ -15,9 +15,10 @@ they are interior times never seen in training; a monocular camera at a held-out
 view never seen in training). The manifest says ``time_varying: true`` and lists the
 ``moving_joints`` (joints that moved more than :data:`MOTION_THRESHOLD`), ``joint_bodies`` (joint
 -> the bodies it moves), ``moving_bodies`` (each of those bodies -> the ids of its own geoms,
-for reading the segmentation per rigid body), ``joint_info`` (see :func:`sims.joints.joint_info`) and ``capture`` (how
-it was captured); its ``bounds`` cover the content over the whole rollout. ``states.npz`` next
-to ``transforms.json`` holds the recorded states (see :func:`capture_dynamic`).
+for reading the segmentation per rigid body), ``joint_info`` (see
+:func:`sims.joints.joint_info`) and ``capture`` (how it was captured); its ``bounds`` cover
+the content over the whole rollout. ``states.npz`` next to ``transforms.json`` holds the
+recorded states (see :func:`capture_dynamic`).
 """
 
 from __future__ import annotations

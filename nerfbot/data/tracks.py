@@ -10,8 +10,8 @@ its second differences over time (a body moves smoothly between steps):
 (``P_i = I - d_i d_i^T`` projects onto the plane across ray i). Many cameras per step
 triangulate each step; a single camera that moves between steps (a monocular capture) is
 resolved by the smoothness, since consecutive rays see the body from different directions.
-The body's extent (half the edge of the cube a part models) is the widest mask's radius at the
-track's depth, with a margin.
+The body's extent (half the edge of the cube a part models) is a high percentile of its masks'
+radii at the track's depth, with a margin.
 
 Only training frames are read; the segmentation of held-out frames never enters a model.
 """
