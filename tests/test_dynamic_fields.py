@@ -12,6 +12,7 @@ import torch
 from nerfbot.data import load_dataset
 from nerfbot.data.conditioning import Conditioning, dataset_conditioning, frame_conditions
 from nerfbot.fields.dnerf import DNeRFField, DNeRFFieldConfig
+from toy_rollout import capture_toy_rollout
 
 pytestmark = pytest.mark.slow(240)  # rough single-core seconds (tests/conftest.py)
 
@@ -196,25 +197,6 @@ def test_methods_refuse_the_wrong_conditioning(tiny_capture, rollout):
         build_model("tnerf", AABB, conditioning=Conditioning())
 
 
-TOY_MOVERS = """
-    <body name="cube" pos="-0.3 -0.15 0.12">
-      <joint name="cube_slide" type="slide" axis="1 0 0" damping="0"/>
-      <geom name="cube" type="box" size="0.09 0.09 0.09" material="red" contype="0"
-            conaffinity="0"/>
-    </body>
-    <body name="ball" pos="0.2 -0.3 0.12">
-      <joint name="ball_slide" type="slide" axis="0 1 0" damping="0"/>
-      <geom name="ball" type="sphere" size="0.08" material="blue" contype="0" conaffinity="0"/>
-    </body>
-"""
-TOY_ROLLOUT = dict(
-    custom="""<text name="nerfbot_capture" data="dynamic"/>
-    <numeric name="nerfbot_duration" data="1.0"/>
-    <text name="nerfbot_objects" data="cube ball"/>""",
-    options='<option gravity="0 0 0"/>',
-    extra='<keyframe><key name="init" qpos="0 0" qvel="0.6 0.6"/></keyframe>')
-
-
 def test_kplanes_static_warmup_turns_the_moving_part_on_and_then_lets_the_grid_prune():
     from nerfbot.fields.kplanes import KPlanesField, KPlanesFieldConfig
 
@@ -238,15 +220,7 @@ def test_kplanes_shows_the_moving_objects_of_a_toy_rollout(tmp_path, toy_mjcf):
     held-out times better than a static field, which can only average them away."""
     from nerfbot.eval.evaluation import evaluate
     from nerfbot.train.trainer import TrainConfig, Trainer
-    from sims.dynamic import capture_dynamic
-    from sims.sequence import sequence_rig
-
-    scene = tmp_path / "toy.xml"
-    scene.write_text(toy_mjcf("toy_rollout", TOY_MOVERS, **TOY_ROLLOUT))
-    rig = sequence_rig(scene, "multiview", 8, size=48, radius=1.8)
-    data = capture_dynamic(scene, rig, tmp_path / "data", frames=12, test_every=4,
-                           progress=False)
-    ds = load_dataset(data)
+    ds = load_dataset(capture_toy_rollout(tmp_path, toy_mjcf))
     objects = {}
     # the static baseline averages the objects away whatever its budget: 11.2 and 11.9 dB on
     # them after 200 and 500 steps (11.6 after 300, rendered with one ray per pixel)

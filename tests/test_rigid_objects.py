@@ -11,6 +11,7 @@ from nerfbot.data import load_dataset
 from nerfbot.data.conditioning import Conditioning, dataset_conditioning
 from nerfbot.data.tracks import estimate_tracks, solve_track
 from nerfbot.fields.rigid import RigidField, RigidFieldConfig, RigidPart
+from toy_rollout import capture_toy_rollout
 
 AABB = [[-1.0, -1.0, 0.0], [1.0, 1.0, 1.0]]
 
@@ -150,25 +151,6 @@ def test_the_segmentation_tracks_the_dynamic_scenes_bodies(tmp_path):
     assert all(again[n]["centres"] == tracks[n]["centres"] for n in tracks)
 
 
-TOY_MOVERS = """
-    <body name="cube" pos="-0.3 -0.15 0.12">
-      <joint name="cube_slide" type="slide" axis="1 0 0" damping="0"/>
-      <geom name="cube" type="box" size="0.09 0.09 0.09" material="red" contype="0"
-            conaffinity="0"/>
-    </body>
-    <body name="ball" pos="0.2 -0.3 0.12">
-      <joint name="ball_slide" type="slide" axis="0 1 0" damping="0"/>
-      <geom name="ball" type="sphere" size="0.08" material="blue" contype="0" conaffinity="0"/>
-    </body>
-"""
-TOY_ROLLOUT = dict(
-    custom="""<text name="nerfbot_capture" data="dynamic"/>
-    <numeric name="nerfbot_duration" data="1.0"/>
-    <text name="nerfbot_objects" data="cube ball"/>""",
-    options='<option gravity="0 0 0"/>',
-    extra='<keyframe><key name="init" qpos="0 0" qvel="0.6 0.6"/></keyframe>')
-
-
 @pytest.mark.slow(90)
 def test_rigid_moves_the_toy_rollouts_objects_between_captured_steps(tmp_path, toy_mjcf):
     """The toy rollout of ``test_dynamic_fields`` (a cube and a ball sliding at 0.6 m/s, 8
@@ -177,15 +159,7 @@ def test_rigid_moves_the_toy_rollouts_objects_between_captured_steps(tmp_path, t
     carry the objects there."""
     from nerfbot.eval.evaluation import evaluate
     from nerfbot.train.trainer import TrainConfig, Trainer
-    from sims.dynamic import capture_dynamic
-    from sims.sequence import sequence_rig
-
-    scene = tmp_path / "toy.xml"
-    scene.write_text(toy_mjcf("toy_rollout", TOY_MOVERS, **TOY_ROLLOUT))
-    rig = sequence_rig(scene, "multiview", 8, size=48, radius=1.8)
-    data = capture_dynamic(scene, rig, tmp_path / "data", frames=12, test_every=4,
-                           progress=False)
-    ds = load_dataset(data)
+    ds = load_dataset(capture_toy_rollout(tmp_path, toy_mjcf))
     options = {"samples_per_batch": 8192, "grid_resolution": 32, "log2_hashmap_size": 15,
                "planes_time_res": 11}
     trainer = Trainer(ds, tmp_path / "rigid", TrainConfig(

@@ -108,7 +108,7 @@ def crop_box(mask: np.ndarray, pad: int = 6) -> tuple[int, int, int, int]:
 
 
 def sheet(dataset, models: dict, rows: int = 4) -> np.ndarray:
-    conds = frame_conditions(dataset, dataset_conditioning(dataset))
+    conds = frame_conditions(dataset, dataset_conditioning(dataset, tracks=False))
     test = dataset.indices("test")
     picks = [test[k] for k in np.linspace(0, len(test) - 1, rows).round().astype(int)]
     out = []

@@ -33,7 +33,7 @@ def _label(ds, i, cond) -> str:
 
 def heldout_sheet(bench: Path, capture: str, rows: int = 4) -> np.ndarray:
     ds = load_dataset(bench / capture)
-    cond = dataset_conditioning(ds)
+    cond = dataset_conditioning(ds, tracks=False)
     conds = frame_conditions(ds, cond)
     models = {m: load_model(bench / f"run_{capture}_{m}")[0] for m in METHODS[capture]}
     test = ds.indices("test")

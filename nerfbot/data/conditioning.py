@@ -118,9 +118,11 @@ def _source(dataset) -> str:
     return str(files[0]) if files else str(dataset.root)
 
 
-def dataset_conditioning(dataset) -> Conditioning:
+def dataset_conditioning(dataset, tracks: bool = True) -> Conditioning:
     """The conditioning of a :class:`~nerfbot.data.dataset.Dataset`: time when its frames carry
-    ``time``, joints when they carry ``joints``, static otherwise.
+    ``time``, joints when they carry ``joints``, static otherwise. ``tracks``: estimate the
+    moving bodies' tracks of a time-conditioned capture (what a model is built from); callers
+    that only read the frames' condition vectors skip it.
 
     Raises:
         DatasetError: naming the transforms file and manifest field, when a joint range is not
@@ -130,7 +132,7 @@ def dataset_conditioning(dataset) -> Conditioning:
     manifest = dataset.manifest or {}
     if dataset.times is not None:
         return Conditioning("time", ("time",), ((0.0, 1.0),),
-                            object_tracks=estimate_tracks(dataset))
+                            object_tracks=estimate_tracks(dataset) if tracks else [])
     if dataset.joints is None:
         return Conditioning()
     where = f"{_source(dataset)}: scene"

@@ -95,7 +95,7 @@ def estimate_tracks(dataset, indices=None) -> list[dict]:
 
     Returns a list, one dict per body seen in at least one frame: ``name``, ``geoms`` (ids),
     ``times`` (J,) the distinct training times, ``centres`` (J, 3) metres, ``extent`` metres
-    (half-edge of the cube around each centre that holds the body), ``rays`` (masks used).
+    (half-edge of the cube around each centre that holds the body).
     [] when the manifest names no moving bodies, the frames carry no segmentation, or (without
     ``indices``) the dataset has no training split. The manifest's ``moving_bodies`` was
     checked when it was read (:func:`nerfbot.data.spec.manifest_value`).
@@ -132,5 +132,5 @@ def estimate_tracks(dataset, indices=None) -> list[dict]:
         radius = float(np.percentile(radii, RADIUS_PERCENTILE)) if radii else MIN_EXTENT
         tracks.append({"name": str(name), "geoms": [int(g) for g in geoms],
                        "times": steps.tolist(), "centres": centres.tolist(),
-                       "extent": max(MIN_EXTENT, EXTENT_MARGIN * radius), "rays": len(rays)})
+                       "extent": max(MIN_EXTENT, EXTENT_MARGIN * radius)})
     return tracks

@@ -183,7 +183,7 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
         raise ValueError(f"downscale must be a positive integer, got {downscale!r}")
     downscale = int(downscale)
     indices = eval_indices(dataset, split, max_images)
-    conds = frame_conditions(dataset, dataset_conditioning(dataset))
+    conds = frame_conditions(dataset, dataset_conditioning(dataset, tracks=False))
     c2w = dataset.c2w[indices]
     moved = None
     if refine_poses is not None:

@@ -156,7 +156,6 @@ class RigidField(Field):
                 "rigid needs the tracks of the moving bodies, which come from a dynamic "
                 "capture's segmentation and its manifest's moving_bodies (`nerfbot capture "
                 "--scene dynamic` writes both); this capture gives none")
-        self.conditioning = conditioning
         self.rconfig = rc = rconfig or RigidFieldConfig()
         if rc.moving_scene:
             self.scene = KPlanesField(aabb, conditioning, config, kconfig, seed=seed)

@@ -103,7 +103,7 @@ def train_label_head(model: Model, dataset: Dataset, config: LabelTrainConfig = 
     config.validate()
     if model.label_head is not None:
         raise ValueError("this run already has a label head")
-    if not dataset_conditioning(dataset).is_static:
+    if not dataset_conditioning(dataset, tracks=False).is_static:
         raise ValueError(f"{dataset.root}: labels are for static scenes (this capture has time "
                          "or joints)")
     classes = classes or label_classes(dataset.manifest, str(dataset.root))
