@@ -1,7 +1,7 @@
 """Find and load MuJoCo scenes: built-in names (``tabletop``), generated scene families
 (``glassware`` or ``glassware:SEED``, ``glazed[:SEED]``, and the zoo of :mod:`sims.zoo`:
-``workspace``, ``room``, ``room_glass``, ``bins``, ``yard``, each ``[:SEED]``) or paths to any
-MJCF file.
+``workspace``, ``room``, ``room_glass``, ``bins``, ``yard`` and the dynamic ``tossed``, each
+``[:SEED]``) or paths to any MJCF file.
 
 A generated family is a function of the seed returning the MJCF text, or a
 :class:`~sims.zoo.mjcf.GeneratedScene`: the text plus asset files (textures) it refers to by
@@ -26,6 +26,7 @@ from sims.glassware import glassware_xml, glazed_xml
 from sims.zoo.bins import bins_scene
 from sims.zoo.mjcf import GeneratedScene
 from sims.zoo.room import room_glass_scene, room_scene
+from sims.zoo.tossed import tossed_scene
 from sims.zoo.workspace import workspace_scene
 from sims.zoo.yard import yard_scene
 
@@ -39,7 +40,7 @@ Generated = Union[str, GeneratedScene]
 def _generators() -> dict[str, Callable[[int], Generated]]:
     return {"glassware": glassware_xml, "glazed": glazed_xml, "workspace": workspace_scene,
             "room": room_scene, "room_glass": room_glass_scene, "bins": bins_scene,
-            "yard": yard_scene}
+            "yard": yard_scene, "tossed": tossed_scene}
 
 
 def builtin_scenes() -> list[str]:

@@ -6,6 +6,7 @@ Kinds, each free (a ``<freejoint>``, so a gripper can lift it) and resting on a 
 - ``can``: an upright cylinder wrapped in a label;
 - ``marker``: a capsule lying on its side (a pen), one colour;
 - ``ball``: an ellipsoid with a two-colour checker;
+- ``sphere``: a round ball with a two-colour checker (it rolls where a ``ball`` wobbles);
 - ``die``: a cube with a checker and edge marks;
 - ``pebble``: a faceted mesh (an icosphere squashed to an ellipsoid), speckled;
 - ``book``: a thin box whose top is a printed page.
@@ -25,7 +26,7 @@ import trimesh
 from sims.zoo import textures
 from sims.zoo.mjcf import Asset, floats
 
-PROP_KINDS = ("box", "can", "marker", "ball", "die", "pebble", "book")
+PROP_KINDS = ("box", "can", "marker", "ball", "sphere", "die", "pebble", "book")
 
 
 @dataclass
@@ -90,7 +91,7 @@ def make_prop(rng: np.random.Generator, kind: str, name: str,
                       f'shininess="0.5"/>']
         return Prop(name, kind, f'type="capsule" size="{floats([r, size / 2 - r])}" '
                     f'zaxis="1 0 0" material="{mat}"', r, size / 2, size, assets_xml)
-    if kind in ("ball", "die"):
+    if kind in ("ball", "sphere", "die"):
         other = textures.random_colour(rng, value=(0.2, 0.6))
         mark = ' mark="edge" markrgb="0.05 0.05 0.05"' if kind == "die" else ""
         assets_xml = [f'    <texture name="{name}" type="cube" builtin="checker" '
@@ -102,6 +103,9 @@ def make_prop(rng: np.random.Generator, kind: str, name: str,
             return Prop(name, kind, f'type="box" size="{floats([size / 2] * 3)}" '
                         f'material="{mat}"', size / 2, size / np.sqrt(2.0), size, assets_xml)
         a = size / 2
+        if kind == "sphere":
+            return Prop(name, kind, f'type="sphere" size="{a:.6g}" material="{mat}"', a, a, size,
+                        assets_xml)
         b, c = a * rng.uniform(0.6, 1.0), a * rng.uniform(0.6, 1.0)
         return Prop(name, kind, f'type="ellipsoid" size="{floats([a, b, c])}" '
                     f'material="{mat}"', c, a, size, assets_xml)
