@@ -1,8 +1,10 @@
-"""Scene flow of deformation fields (``nerfbot.query.motion``): an analytic moving blob, the
-consistency of the two directions, and fields that have no deformation."""
+"""Scene flow (``nerfbot.query.motion``) of deformation fields (an analytic moving blob) and of
+rigid parts (a cube on a known track), the consistency of the two directions, and fields that
+have no deformation."""
 
 from __future__ import annotations
 
+import math
 from types import SimpleNamespace
 
 import pytest
@@ -11,6 +13,7 @@ import torch
 from nerfbot.data.conditioning import Conditioning
 from nerfbot.fields.dnerf import DNeRFField, DNeRFFieldConfig
 from nerfbot.fields.kplanes import KPlanesField
+from nerfbot.fields.rigid import RigidField
 from nerfbot.query.motion import point_motion, scene_flow
 
 AABB = [[-1.0, -1.0, 0.0], [1.0, 1.0, 1.0]]
@@ -75,3 +78,53 @@ def test_fields_without_a_deformation_have_no_scene_flow():
     model = SimpleNamespace(field=KPlanesField(AABB, TIME))
     with pytest.raises(ValueError, match="KPlanesField has no deformation: scene flow needs"):
         point_motion(model, torch.zeros(1, 3), 0.0, 1.0)
+
+
+def _rigid_cube():
+    """A rigid field whose one part (a 10 cm cube, made opaque) is carried along a known track:
+    steps at t = 0, 0.5, 1 with centres along +x and turns of 0, 45 and 90 degrees about z."""
+    track = {"name": "cube", "times": [0.0, 0.5, 1.0], "extent": 0.1,
+             "centres": [[-0.3, 0.0, 0.5], [0.0, 0.1, 0.5], [0.3, 0.0, 0.5]],
+             "rotations": [[0.0, 0.0, 0.0], [0.0, 0.0, math.pi / 4], [0.0, 0.0, math.pi / 2]]}
+    cond = Conditioning("time", ("time",), ((0.0, 1.0),), object_tracks=[track])
+    field = RigidField(AABB, cond)
+    field.parts[0].density_bias += 20.0                 # the body's material fills its cube
+    return SimpleNamespace(field=field)
+
+
+def _turn_z(angle: float) -> torch.Tensor:
+    c, s = math.cos(angle), math.sin(angle)
+    return torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def test_rigid_parts_move_their_material_along_the_track_and_nothing_else():
+    model = _rigid_cube()
+    offset = torch.tensor([0.05, 0.02, -0.03])          # a point of the body, in its frame
+    x0 = torch.stack([torch.tensor([-0.3, 0.0, 0.5]) + offset, torch.tensor([0.5, -0.6, 0.2])])
+    for t1, centre, angle in ((0.5, [0.0, 0.1, 0.5], math.pi / 4),
+                              (1.0, [0.3, 0.0, 0.5], math.pi / 2),
+                              (0.25, [-0.15, 0.05, 0.5], math.pi / 8)):   # between two steps
+        moved = point_motion(model, x0, 0.0, t1)
+        expected = torch.tensor(centre) + _turn_z(angle) @ offset
+        assert torch.allclose(moved.points[0], expected, atol=1e-5), t1
+        assert torch.equal(moved.points[1], x0[1])      # empty space far from the body stays
+        assert float(moved.residual.abs().max()) == 0.0
+    flow = scene_flow(model, x0[:1], 0.0, 1.0).points[0]
+    assert torch.allclose(flow, torch.tensor([0.3, 0.0, 0.5]) + _turn_z(math.pi / 2) @ offset
+                          - x0[0], atol=1e-5)
+
+
+def test_rigid_forward_then_backward_flow_returns_every_point():
+    """The body's material comes back from t0 -> t1 -> t0; a point of empty space clear of the
+    body at both times stays put both ways."""
+    model = _rigid_cube()
+    gen = torch.Generator().manual_seed(1)
+    centre, turn = torch.tensor([0.0, 0.1, 0.5]), _turn_z(math.pi / 4)   # the pose at t = 0.5
+    body = centre + (0.198 * (torch.rand(300, 3, generator=gen) - 0.5)) @ turn.T
+    empty = torch.tensor([0.0, -0.4, 0.5]) + 0.2 * (torch.rand(100, 3, generator=gen) - 0.5)
+    points = torch.cat([body, empty])
+    there = point_motion(model, points, 0.5, 0.9)
+    back = point_motion(model, there.points, 0.9, 0.5)
+    assert (back.points - points).norm(dim=-1).max() < 1e-5
+    assert (there.points[:300] - body).norm(dim=-1).min() > 0.1      # the body moved
+    assert torch.equal(there.points[300:], empty)

@@ -227,6 +227,37 @@ class RigidField(Field):
             {"params": mlps, "lr_scale": self.ngp_config.mlp_lr_scale},
             {"params": poses, "lr_scale": self.rconfig.pose_lr_scale}]
 
+    @torch.no_grad()
+    def move_points(self, x0: torch.Tensor, t0: float, t1: float
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Where world points x0 (N, 3, metres) of time t0 are at time t1 (both in [0, 1]): a
+        point goes with the part whose density there at t0 is the largest and at least the
+        scene's (it is that body's material), ``x1 = R1 R0^T (x0 - c0) + c1`` with the part's
+        poses at the two times; every other point stays where it is (the scene's space-time
+        planes hold what they move as density at each time, not as motion). Returns x1 (N, 3)
+        and the residual (N,), zero: the motion is exact, and t1 -> t0 undoes it."""
+        x0 = x0.reshape(-1, 3)
+        tt0 = x0.new_full((len(x0),), float(t0))
+        best = self.scene.density(x0, tt0[:, None])[0]
+        owner = torch.full((len(x0),), -1, dtype=torch.long, device=x0.device)
+        for k, part in enumerate(self.parts):
+            y = part.local(x0, tt0)
+            inside = (y.abs() < 1.0).all(-1)
+            sigma = torch.zeros_like(best)
+            if inside.any():
+                sigma[inside] = part(y[inside])[0]
+            mine = inside & (sigma > 0) & (sigma >= best)
+            owner[mine], best = k, torch.where(mine, sigma, best)
+        x1 = x0.clone()
+        for k, part in enumerate(self.parts):
+            idx = (owner == k).nonzero().squeeze(1)
+            if idx.numel() == 0:
+                continue
+            r0, c0 = part.pose(x0.new_full((1,), float(t0)))
+            r1, c1 = part.pose(x0.new_full((1,), float(t1)))
+            x1[idx] = (x0[idx] - c0) @ r0[0] @ r1[0].T + c1
+        return x1, x0.new_zeros(len(x0))
+
     def part_centres(self, t: torch.Tensor) -> dict[str, torch.Tensor]:
         """Body name -> (N, 3) its centre at times t (N,), metres (where the field puts it)."""
         with torch.no_grad():

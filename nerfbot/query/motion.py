@@ -1,4 +1,5 @@
-"""Where the points of a moving scene go: scene flow of a deformation field (``dnerf``).
+"""Where the points of a moving scene go: scene flow of a deformation field (``dnerf``) or of
+rigid parts carried along their tracks (``rigid``).
 
 A deformation field renders the scene at time t as a canonical scene seen through a warp,
 ``canonical(x) = x + dx(x, t)``. The material at point ``x0`` at time ``t0`` is the canonical
@@ -9,8 +10,10 @@ their distance, as a rigid motion does). Going from ``t1`` back to ``t0`` return
 two directions are consistent by construction, up to the iteration's tolerance, which is
 reported.
 
-Fields without a deformation (``kplanes`` and ``tnerf`` model what moves by its density at each
-time, not by where it goes) have no scene flow; :func:`point_motion` says so.
+A field that moves points itself (``rigid``: a point of a body's material goes with the body's
+pose, :meth:`nerfbot.fields.rigid.RigidField.move_points`) answers directly and exactly. Fields
+without either (``kplanes`` and ``tnerf`` model what moves by its density at each time, not by
+where it goes) have no scene flow; :func:`point_motion` says so.
 """
 
 from __future__ import annotations
@@ -38,7 +41,7 @@ def _deformation(model: Model):
     if deform is None:
         name = type(field).__name__ if field is not None else type(model).__name__
         raise ValueError(f"{name} has no deformation: scene flow needs a deformation field "
-                         "(a dnerf run)")
+                         "(a dnerf run) or rigid parts (a rigid run)")
     return deform
 
 
@@ -47,9 +50,13 @@ def point_motion(model: Model, points: torch.Tensor, t0: float, t1: float,
                  iterations: int = 50, tolerance: float = 1e-5) -> Motion:
     """Move world ``points`` (N, 3, metres) of time ``t0`` to time ``t1`` (both in [0, 1])
     through the model's deformation. Stops when every point moves by less than ``tolerance``
-    metres in an iteration, or after ``iterations``."""
-    deform = _deformation(model)
+    metres in an iteration, or after ``iterations``; a field with its own ``move_points``
+    (``rigid``) moves them itself."""
     x0 = torch.as_tensor(points, dtype=torch.float32).reshape(-1, 3)
+    mover = getattr(getattr(model, "field", None), "move_points", None)
+    if mover is not None:
+        return Motion(*mover(x0, float(t0), float(t1)))
+    deform = _deformation(model)
     tt0 = x0.new_full((len(x0), 1), float(t0))
     tt1 = x0.new_full((len(x0), 1), float(t1))
     canonical = x0 + deform(x0, tt0)
