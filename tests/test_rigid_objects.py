@@ -84,6 +84,32 @@ def test_a_part_moves_with_its_track_and_passes_gradients_to_its_poses():
     assert (part.centres.grad[:2].abs().sum(1) > 0).all() and not part.centres.grad[2].any()
 
 
+def test_rotation_increments_give_the_same_poses_and_train_earlier_turns_from_later_steps():
+    """``rotation_increments``: a track's rotations become the first step's and the turns
+    between steps, whose prefix products are the same poses; the image of the last step then
+    trains every turn before it, where absolute rotations train that step's (and the step
+    before it, through the interpolation's turn) alone."""
+    times = np.linspace(0.0, 1.0, 7)
+    turns = np.stack([0.3 * times, np.zeros(7), 2.5 * times], 1)         # a roll, then a spin
+    track = {"name": "ball", "times": times.tolist(), "extent": 0.1,
+             "centres": np.zeros((7, 3)).tolist(), "rotations": turns.tolist()}
+    absolute = RigidPart(track, RigidFieldConfig(), geo_feat_dim=3, seed=0)
+    chained = RigidPart(track, RigidFieldConfig(rotation_increments=True), geo_feat_dim=3, seed=0)
+    t = torch.tensor([0.0, 0.1, 0.5, 0.77, 1.0])
+    torch.testing.assert_close(chained.step_rotations(), absolute.step_rotations(), atol=1e-6,
+                               rtol=0)
+    torch.testing.assert_close(chained.pose(t)[0], absolute.pose(t)[0], atol=1e-6, rtol=0)
+    for part in (absolute, chained):
+        with torch.no_grad():
+            for g in part.grids:
+                g.normal_()
+        sigma, _ = part(part.local(torch.tensor([[0.03, 0.02, 0.01]]), torch.tensor([1.0])))
+        sigma.sum().backward()
+    # t = 1 is the last step, reached from the one before it by the turn between the two
+    assert (absolute.rotations.grad[:-2] == 0).all() and absolute.rotations.grad[-1].any()
+    assert (chained.rotations.grad.abs().sum(1) > 0).all()
+
+
 def test_the_rigid_field_is_the_scene_away_from_its_parts_and_needs_tracks():
     cond = Conditioning("time", ("time",), ((0.0, 1.0),), object_tracks=[_track()])
     field = RigidField(AABB, cond)

@@ -8,7 +8,9 @@ A method written ``NAME/VARIANT`` is trained into ``run_<capture>_NAME_VARIANT``
 variant's flags (:data:`VARIANTS`): ``uniform`` rays (``--dynamic-rays 0``), ``warmup``
 (``--option dynamic_warmup=0.2``, kplanes' static part alone first), or ``errors`` (half the
 rays by the training error instead of the images' change: ``--error-rays 0.5``), or, for
-``rigid``, ``static`` (a static scene around the parts: ``--option moving_scene=false``).
+``rigid``, ``static`` (a static scene around the parts: ``--option moving_scene=false``) or
+``increments`` (each step's rotation trained as a turn from the step before:
+``--option rotation_increments=true``).
 
 ``BENCH/<capture>`` holds the captures made by the commands in BENCHMARKS.md. Each method is
 trained alone (``nerfbot train --max-seconds S``) into ``BENCH/run_<capture>_<method>`` (kept
@@ -53,7 +55,8 @@ HERE = Path(__file__).resolve().parent
 VARIANTS = {"": [], "uniform": ["--dynamic-rays", "0"],
             "warmup": ["--option", "dynamic_warmup=0.2"],
             "errors": ["--dynamic-rays", "0", "--error-rays", "0.5"],
-            "static": ["--option", "moving_scene=false"]}
+            "static": ["--option", "moving_scene=false"],
+            "increments": ["--option", "rotation_increments=true"]}
 
 
 def object_mask(dataset, i: int) -> np.ndarray:

@@ -56,6 +56,10 @@ class RigidFieldConfig:
     pose_lr_scale: float = 0.1
     """Learning rate of the poses relative to the method's (metres and radians per step, about,
     under Adam)."""
+    rotation_increments: bool = False
+    """Train each step's rotation as a turn from the step before it (the first step's as it is),
+    so the images of every later step also train an earlier step's turn; False: one rotation
+    per step, each trained by its own step's images."""
     moving_scene: bool = True
     """The scene around the parts is ``kplanes`` (static field + space-time planes: shadows,
     bodies without a track, what a part's pose misses); False: a static ngp field, so
@@ -84,7 +88,8 @@ class RigidPart(nn.Module):
         times: (J,) buffer, the training time steps in [0, 1], sorted.
         centres: (J, 3) parameter, the body's centre at each step, metres.
         rotations: (J, 3) parameter, axis-angle of the body's rotation from its frame to the
-            world at each step, radians.
+            world at each step, radians; with ``rotation_increments`` the first step's, then
+            each step's turn from the step before, in that earlier step's body frame.
         extent: half-edge of the part's cube, metres.
     """
 
@@ -95,8 +100,14 @@ class RigidPart(nn.Module):
         self.register_buffer("times", torch.tensor(track["times"], dtype=torch.float32))
         self.centres = nn.Parameter(torch.tensor(track["centres"], dtype=torch.float32))
         rotations = track.get("rotations")
-        self.rotations = nn.Parameter(torch.zeros_like(self.centres) if rotations is None
-                                      else torch.tensor(rotations, dtype=torch.float32))
+        rotations = (torch.zeros_like(self.centres) if rotations is None
+                     else torch.tensor(rotations, dtype=torch.float32))
+        self.increments = cfg.rotation_increments
+        if self.increments and len(rotations) > 1:
+            steps = so3_exp(rotations)
+            rotations = torch.cat([rotations[:1],
+                                   so3_log(steps[:-1].transpose(1, 2) @ steps[1:])])
+        self.rotations = nn.Parameter(rotations)
         gen = torch.Generator().manual_seed(seed)
         self.grids = nn.ParameterList([
             nn.Parameter(1e-4 * (2 * torch.rand(1, cfg.part_features, r, r, r, generator=gen) - 1))
@@ -106,6 +117,17 @@ class RigidPart(nn.Module):
         diagonal = 2.0 * math.sqrt(3.0) * self.extent
         self.density_bias = math.log(-math.log(cfg.part_initial_transmittance) / diagonal)
 
+    def step_rotations(self) -> torch.Tensor:
+        """(J, 3, 3) the body -> world rotation at each training step."""
+        rot = so3_exp(self.rotations)
+        if not self.increments:
+            return rot
+        shift = 1
+        while shift < len(rot):  # prefix products R_0 R_1 ... R_j, in log2(J) batched rounds
+            rot = torch.cat([rot[:shift], rot[:-shift] @ rot[shift:]])
+            shift *= 2
+        return rot
+
     def pose(self, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Rotations (N, 3, 3) body -> world and centres (N, 3) at times t (N,) between the two
         neighbouring steps: the centre linearly, the rotation along the shortest turn from one
@@ -114,7 +136,7 @@ class RigidPart(nn.Module):
         times = self.times.to(t.dtype)
         if times.numel() == 1:
             n = t.shape[0]
-            return (so3_exp(self.rotations).expand(n, 3, 3),
+            return (self.step_rotations().expand(n, 3, 3),
                     self.centres.expand(n, 3))
         # the samples of a ray, and every ray of a rendered image, share one time
         t, which = torch.unique(t, return_inverse=True)
@@ -122,7 +144,7 @@ class RigidPart(nn.Module):
         lo = hi - 1
         w = ((t - times[lo]) / (times[hi] - times[lo])).clamp(0.0, 1.0)[:, None]
         centre = self.centres[lo] + w * (self.centres[hi] - self.centres[lo])
-        step_rot = so3_exp(self.rotations)  # (J, 3, 3)
+        step_rot = self.step_rotations()  # (J, 3, 3)
         turn = so3_log(step_rot[:-1].transpose(1, 2) @ step_rot[1:])  # (J - 1, 3)
         rot = step_rot[lo] @ so3_exp(w * turn[lo])
         return rot[which], centre[which]
