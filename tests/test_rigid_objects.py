@@ -90,9 +90,9 @@ def test_rotation_increments_give_the_same_poses_and_train_earlier_turns_from_la
     trains every turn before it, where absolute rotations train that step's (and the step
     before it, through the interpolation's turn) alone."""
     times = np.linspace(0.0, 1.0, 7)
-    turns = np.stack([0.3 * times, np.zeros(7), 2.5 * times], 1)         # a roll, then a spin
+    rotations = np.stack([0.3 * times, np.zeros(7), 2.5 * times], 1)  # about a tilted axis
     track = {"name": "ball", "times": times.tolist(), "extent": 0.1,
-             "centres": np.zeros((7, 3)).tolist(), "rotations": turns.tolist()}
+             "centres": np.zeros((7, 3)).tolist(), "rotations": rotations.tolist()}
     absolute = RigidPart(track, RigidFieldConfig(), geo_feat_dim=3, seed=0)
     chained = RigidPart(track, RigidFieldConfig(rotation_increments=True), geo_feat_dim=3, seed=0)
     t = torch.tensor([0.0, 0.1, 0.5, 0.77, 1.0])

@@ -6,10 +6,12 @@ own carried along a track of poses.
                   features, and the view
 
 The scene is the ``kplanes`` field (static ngp field + space-time planes: shadows and whatever
-moves without a track), or with ``moving_scene=false`` a static ngp field. Each body k is a dense multi-level feature grid over the cube
-[-1, 1]^3 of half-edge s_k around its centre, a density MLP, and a pose per training time step:
-a centre c_k and an axis-angle rotation, both trained. Between steps (a held-out time) the pose
-is interpolated linearly, so the body moves there instead of cross-fading.
+moves without a track), or with ``moving_scene=false`` a static ngp field. Each body k is a
+dense multi-level feature grid over the cube [-1, 1]^3 of half-edge s_k around its centre, a
+density MLP, and a pose per training time step: a centre c_k and an axis-angle rotation (or,
+with ``rotation_increments``, a turn from the step before), both trained. Between steps (a
+held-out time) the pose is interpolated, so the body moves there instead of cross-fading; a
+point of a body's material goes with the body (:meth:`RigidField.move_points`, scene flow).
 
 Why: space-time planes hold a small object separately at every time step, so each of its
 pixels is trained by the few rays of that step (BENCHMARKS.md, section 4, "How many rays the

@@ -18,7 +18,7 @@ seeded stream, so a seed always gives the same scene) until a physics rollout of
 duration keeps every prop on the table top and something still moves in its last quarter
 (:func:`throw_is_kept`).
 
-The default rig circles :data:`RIG_RADIUS` m around a point above the table centre at 20-65
+The default rig circles :data:`RIG_RADIUS` m around a point above the table centre at 25-65
 degrees of elevation with a 30 degree fov: the table fills most of the frame and a prop of
 10 cm covers about 14 pixels of a 128-pixel image.
 
@@ -124,6 +124,7 @@ class Pendulum:
 
 
 def _pendulum(rng: np.random.Generator, half_x: float) -> Pendulum | None:
+    """A seeded pendulum at one x end of the table, or None (:data:`PENDULUM_CHANCE`)."""
     if rng.uniform() >= PENDULUM_CHANCE:
         return None
     side = 1.0 if rng.uniform() < 0.5 else -1.0
@@ -170,8 +171,9 @@ def throw_is_kept(model: mujoco.MjModel, prop_names: list[str], half_x: float,
     data = mujoco.MjData(model)
     mujoco.mj_resetDataKeyframe(model, data, model.key("init").id)
     ids = [model.body(n).id for n in prop_names]
-    if "pendulum" in [model.body(i).name for i in range(model.nbody)]:
-        ids.append(model.body("pendulum").id)
+    pendulum = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "pendulum")
+    if pendulum >= 0:
+        ids.append(pendulum)
     total = int(round(duration_s / model.opt.timestep))
     inner_x, inner_y = half_x - RIM_WIDTH, half_y - RIM_WIDTH
     moving_late, before = False, None
@@ -200,11 +202,14 @@ def _rim(half_x: float, half_y: float) -> str:
     rolling props on the table."""
     h, w = RIM_HEIGHT / 2, RIM_WIDTH / 2
     z = TABLE_TOP + h
-    sides = [("x_pos", [half_x - w, 0.0], [w, half_y, h]), ("x_neg", [-half_x + w, 0.0], [w, half_y, h]),
-             ("y_pos", [0.0, half_y - w], [half_x, w, h]), ("y_neg", [0.0, -half_y + w], [half_x, w, h])]
-    return "\n".join(f'    <geom name="table_rim_{name}" type="box" size="{floats(size)}" '
-                     f'pos="{floats([*xy, z])}" material="table_wood" friction="0.5 0.01 0.001"/>'
-                     for name, xy, size in sides)
+    sides = [("x_pos", [half_x - w, 0.0], [w, half_y, h]),
+             ("x_neg", [-half_x + w, 0.0], [w, half_y, h]),
+             ("y_pos", [0.0, half_y - w], [half_x, w, h]),
+             ("y_neg", [0.0, -half_y + w], [half_x, w, h])]
+    return "\n".join(
+        f'    <geom name="table_rim_{name}" type="box" size="{floats(size)}" '
+        f'pos="{floats([*xy, z])}" material="table_wood" friction="0.5 0.01 0.001"/>'
+        for name, xy, size in sides)
 
 
 def _legs(half_x: float, half_y: float) -> str:
@@ -258,7 +263,7 @@ def tossed_scene(seed: int = 0) -> GeneratedScene:
                    f"the table top is at z = {TABLE_TOP}. Textures are\n  the PNG files beside "
                    "this file.")
     lights = "\n".join(sun_lights(rng, (0.0, 0.0, TABLE_TOP), 3.0))
-    # Bodies start at the origin: the keyframe places and throws them.
+    # The bodies' own poses do not matter: the keyframe places and throws them.
     bodies = [pendulum.body()] if pendulum else []
     bodies += [f'    <body name="{p.name}" pos="0 0 {TABLE_TOP + 1.0}">\n'
                f'      <freejoint name="{p.name}"/>\n'
