@@ -19,8 +19,8 @@ For ``rigid`` runs, the centre of each body's part at the step's time (its train
 objects that are their body's only geom (the track follows the body's masks, not one geom's
 centre).
 
-For runs whose field is a deformation (``dnerf``), the field's points of each object are also
-moved to the next captured step by the field's scene flow (:func:`nerfbot.query.motion.
+For runs with a scene flow (``dnerf``'s deformation, ``rigid``'s parts), the field's points of
+each object are also moved to the next captured step by it (:func:`nerfbot.query.motion.
 point_motion`), and their mean displacement is compared with the geom centre's in MuJoCo.
 
 Reports per run and object the median and the largest error over time (cm) of the field's
@@ -62,7 +62,8 @@ def geom_centres(dataset) -> tuple[dict, np.ndarray]:
     manifest = dataset.manifest
     states = np.load(dataset.root / manifest["capture"]["state_file"])
     body_names = [str(n) for n in states["body_names"]]
-    model, _ = load_capture_model(manifest["name"])
+    source = str(manifest.get("source") or manifest["name"])
+    model, _ = load_capture_model(source.removeprefix("builtin:"))  # tossed:3, or an MJCF path
     centres = {}
     for name in manifest["objects"]:
         g = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, name)
@@ -87,7 +88,7 @@ def measure(run: Path) -> dict:
     _, ds = resolve_run_dataset(run, info["spec"].get("dataset"))
     centres, state_of = geom_centres(ds)
     step_times = np.load(ds.root / ds.manifest["capture"]["state_file"])["time"]
-    flows = hasattr(model.field, "deformation")
+    flows = hasattr(model.field, "deformation") or hasattr(model.field, "move_points")
     ids = {name: int(k) for k, name in ds.manifest["geoms"].items()
            if name in ds.manifest["objects"]}
     tracked = {}  # object -> the body whose part tracks it alone
