@@ -3,8 +3,6 @@ table, generated, rolled out in real MuJoCo physics and captured over time at 32
 
 from __future__ import annotations
 
-import os
-
 import mujoco
 import numpy as np
 import pytest
@@ -14,7 +12,7 @@ from nerfbot.data import load_dataset
 from sims.dynamic import capture_dynamic
 from sims.manifest import declared_objects
 from sims.rollout import rollout
-from sims.scene import builtin_scenes, load_model, scene_cache_dir
+from sims.scene import builtin_scenes, load_model
 from sims.sequence import capture_kind, sequence_rig
 from sims.zoo import tossed
 from sims.zoo.tossed import tossed_scene
@@ -27,13 +25,9 @@ SEEDS = (0, 1, 7)
 @pytest.fixture(scope="module", autouse=True)
 def scene_cache(tmp_path_factory):
     """Generated scenes go to a fresh cache folder for this module."""
-    old = os.environ.get("NERFBOT_CACHE")
-    os.environ["NERFBOT_CACHE"] = str(tmp_path_factory.mktemp("cache"))
-    yield scene_cache_dir()
-    if old is None:
-        os.environ.pop("NERFBOT_CACHE", None)
-    else:
-        os.environ["NERFBOT_CACHE"] = old
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("NERFBOT_CACHE", str(tmp_path_factory.mktemp("cache")))
+        yield
 
 
 def _table_half(model: mujoco.MjModel) -> np.ndarray:

@@ -20,6 +20,7 @@ import argparse
 from pathlib import Path
 
 import matplotlib
+import mujoco
 import numpy as np
 import torch
 from matplotlib.figure import Figure
@@ -32,12 +33,11 @@ HERE = Path(__file__).resolve().parent
 
 
 def quaternion_matrices(quat: np.ndarray) -> np.ndarray:
-    """(..., 4) w-x-y-z unit quaternions -> (..., 3, 3) rotation matrices."""
-    w, x, y, z = np.moveaxis(quat / np.linalg.norm(quat, axis=-1, keepdims=True), -1, 0)
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)], -2)
+    """(N, 4) w-x-y-z unit quaternions -> (N, 3, 3) rotation matrices (MuJoCo's conversion)."""
+    out = np.empty((len(quat), 9))
+    for row, q in zip(out, np.asarray(quat, np.float64)):
+        mujoco.mju_quat2Mat(row, q)
+    return out.reshape(-1, 3, 3)
 
 
 def angle_deg(rot: np.ndarray) -> np.ndarray:

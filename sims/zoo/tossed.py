@@ -162,12 +162,12 @@ def _throws(rng: np.random.Generator, props: list[Prop]) -> tuple[np.ndarray, np
     return np.asarray(qpos), np.asarray(qvel)
 
 
-def throw_is_kept(model: mujoco.MjModel, prop_names: list[str], half_x: float,
-                  half_y: float, duration_s: float = DURATION_S) -> bool:
+def throw_is_kept(model: mujoco.MjModel, prop_names: list[str],
+                  duration_s: float = DURATION_S) -> bool:
     """Whether a rollout of ``model`` from its ``init`` keyframe over ``duration_s`` seconds,
     looked at every 10th physics step, stays finite, keeps the centre of every prop above the
-    table top and inside its rim, and has a prop (or the pendulum's bob) moving faster than
-    :data:`LATE_SPEED` at some look in its last :data:`LATE_SHARE`."""
+    table top (``table_top``) and inside its rim, and has a prop (or the pendulum's bob) moving
+    faster than :data:`LATE_SPEED` at some look in its last :data:`LATE_SHARE`."""
     data = mujoco.MjData(model)
     mujoco.mj_resetDataKeyframe(model, data, model.key("init").id)
     ids = [model.body(n).id for n in prop_names]
@@ -175,7 +175,7 @@ def throw_is_kept(model: mujoco.MjModel, prop_names: list[str], half_x: float,
     if pendulum >= 0:
         ids.append(pendulum)
     total = int(round(duration_s / model.opt.timestep))
-    inner_x, inner_y = half_x - RIM_WIDTH, half_y - RIM_WIDTH
+    inner_x, inner_y = model.geom("table_top").size[:2] - RIM_WIDTH
     moving_late, before = False, None
     for step in range(1, total + 1):
         mujoco.mj_step(model, data)
@@ -283,7 +283,7 @@ def tossed_scene(seed: int = 0) -> GeneratedScene:
             gantry=pendulum.geoms() if pendulum else "", bodies="\n".join(bodies),
             keyframe=_keyframe(pendulum, qpos, qvel))
         model = mujoco.MjModel.from_xml_string(xml, files)
-        if throw_is_kept(model, [p.name for p in props], half_x, half_y):
+        if throw_is_kept(model, [p.name for p in props]):
             return GeneratedScene(xml, assets)
     raise RuntimeError(f"tossed:{seed}: none of {THROW_TRIES} throws kept every prop on the "
                        "table and something moving to the end")
