@@ -9,7 +9,7 @@ import torch
 
 from nerfbot.data import load_dataset
 from nerfbot.data.importance import temporal_weights
-from nerfbot.data.pixels import PixelBank
+from nerfbot.data.pixels import PixelBank, ValidPixels
 
 pytestmark = pytest.mark.slow(5)  # rough single-core seconds (tests/conftest.py)
 
@@ -64,6 +64,60 @@ def test_the_bank_draws_the_important_share_in_proportion_to_the_weights(tiny_ca
                                rtol=1e-5)
     assert np.all(loss_weights[np.isin(drawn, chosen, invert=True)] == np.float32(1 / 0.75))
     assert abs(loss_weights.mean() - 1.0) < 0.01
+
+
+def test_a_time_limit_draws_only_the_frames_up_to_it_and_keeps_the_weights_proportions(
+        tiny_capture):
+    """``set_time_limit``: uniform and importance draws stay within the frames up to the limit
+    (the first ones of a bank in order of time), the importance draws in the proportions of
+    the weights there, and the loss weights undo the bias within them."""
+    ds = load_dataset(tiny_capture[0])
+    train = ds.indices("train")
+    times = np.zeros((len(ds.images), 1), np.float32)
+    times[train, 0] = np.linspace(0.0, 1.0, len(train))
+    bank = PixelBank(ds, train, conditions=times)
+    per_frame = int(bank.offsets[1])
+    weights = np.zeros(len(bank), np.float32)
+    weights[[7, per_frame + 3, 10 * per_frame]] = [1.0, 3.0, 50.0]  # frames 0, 1 and 10
+    bank.set_importance(weights, 0.25)
+    bank.set_time_limit(float(times[train[3], 0]))  # frames 0-3
+    generator = torch.Generator().manual_seed(0)
+    drawn, loss_weights = [], []
+    for _ in range(40):
+        bank.sample(2000, generator)
+        drawn.append(bank.last_pixels.numpy())
+        loss_weights.append(bank.last_weights.numpy())
+    drawn, loss_weights = np.stack(drawn), np.stack(loss_weights)
+    assert drawn.max() < 4 * per_frame and len(np.unique(drawn[:, 500:])) > 0.9 * 4 * per_frame
+    important = drawn[:, :500].reshape(-1)
+    assert set(np.unique(important)) == {7, per_frame + 3}
+    assert abs((important == 7).mean() - 0.25) < 0.02
+    q = 0.75 / (4 * per_frame) + 0.25 * weights / 4.0
+    np.testing.assert_allclose(loss_weights.reshape(-1),
+                               (1 / (4 * per_frame)) / q[drawn.reshape(-1)], rtol=1e-5)
+    assert abs(loss_weights.mean() - 1.0) < 0.02
+    bank.set_time_limit(None)  # every frame again, frame 10's pixel the most drawn
+    bank.sample(2000, generator)
+    assert (bank.last_pixels[:500] == 10 * per_frame).float().mean() > 0.8
+    with pytest.raises(ValueError, match="keeps no frame"):
+        bank.set_time_limit(-0.1)
+    with pytest.raises(ValueError, match="in order of time"):
+        PixelBank(ds, train[::-1], conditions=times).set_time_limit(0.5)
+    with pytest.raises(ValueError, match="time-conditioned"):
+        PixelBank(ds, train).set_time_limit(0.5)
+    errors = PixelBank(ds, train, conditions=times)
+    errors.enable_error_map(0.5)
+    with pytest.raises(ValueError, match="error-rays"):
+        errors.set_time_limit(0.5)
+
+
+def test_valid_pixels_count_those_below_an_index_in_both_of_their_forms():
+    rng = np.random.default_rng(0)
+    for share in (0.9, 0.1):  # mostly valid: the invalid ones listed; mostly invalid: the valid
+        valid = rng.random(5000) < share
+        pixels = ValidPixels(valid)
+        for p in (0, 1, 17, 2500, 4999, 5000):
+            assert pixels.count_below(p) == int(valid[:p].sum())
 
 
 def test_importance_weights_refuse_bad_input(tiny_capture):

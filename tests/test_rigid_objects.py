@@ -11,6 +11,7 @@ from nerfbot.data import load_dataset
 from nerfbot.data.conditioning import Conditioning, dataset_conditioning
 from nerfbot.data.tracks import estimate_tracks, solve_track
 from nerfbot.fields.rigid import RigidField, RigidFieldConfig, RigidPart
+from nerfbot.ops.lie import so3_exp
 from toy_rollout import capture_toy_rollout
 
 AABB = [[-1.0, -1.0, 0.0], [1.0, 1.0, 1.0]]
@@ -110,6 +111,50 @@ def test_rotation_increments_give_the_same_poses_and_train_earlier_turns_from_la
     assert (chained.rotations.grad.abs().sum(1) > 0).all()
 
 
+def test_a_time_curriculum_grows_the_trained_steps_and_carries_each_bodys_turn_on():
+    """``time_curriculum``: the latest training time moves from the first step to the last over
+    that share of the budget; a step whose frames join starts from its body's last turn
+    carried on once more, so a body spinning at a constant rate is followed before its frames
+    train it."""
+    times = np.linspace(0.0, 1.0, 5)
+    track = {"name": "ball", "times": times.tolist(), "extent": 0.1,
+             "centres": np.zeros((5, 3)).tolist()}
+    cond = Conditioning("time", ("time",), ((0.0, 1.0),), object_tracks=[track])
+    assert RigidField(AABB, cond).training_time_limit(0.0) is None  # off by default
+    for increments in (False, True):
+        field = RigidField(AABB, cond, rconfig=RigidFieldConfig(
+            time_curriculum=0.5, rotation_increments=increments))
+        part = field.parts[0]
+        assert [field.training_time_limit(p) for p in (0.0, 0.125, 0.25)] == [0.0, 0.25, 0.5]
+        assert field.training_time_limit(0.5) is None and field.training_time_limit(0.9) is None
+        field.before_step(0, 0.125)  # steps 0 and 1: step 1 starts at step 0's rotation
+        assert int(field.steps_joined[0]) == 2 and not part.rotations.any()
+        spin = torch.tensor([0.1, -0.2, 0.3])  # step 1's rotation, as training found it
+        with torch.no_grad():
+            part.rotations[1] = spin
+        field.before_step(1, 0.26)  # step 2 has joined, 3 and 4 not yet
+        assert int(field.steps_joined[0]) == 3 and not part.rotations[3:].any()
+        field.before_step(2, 0.5)  # every step
+        assert int(field.steps_joined[0]) == 5
+        expected = so3_exp(torch.outer(torch.arange(5.0), spin))  # a constant angular velocity
+        torch.testing.assert_close(part.step_rotations(), expected, atol=1e-5, rtol=0)
+        # a step that has joined is not restarted: training owns it
+        with torch.no_grad():
+            part.rotations[4] = 0.0
+        field.before_step(3, 0.7)
+        assert not part.rotations[4].any()
+        # a share of the last turn: half of it, or none (the step before's rotation)
+        for share, turns in ((0.5, 1.5), (0.0, 1.0)):
+            with torch.no_grad():
+                part.rotations[2:] = 0.0
+                part.rotations[1] = spin
+            part.carry_on_rotation(2, share)
+            torch.testing.assert_close(part.step_rotations()[2], so3_exp(turns * spin[None])[0],
+                                       atol=1e-5, rtol=0)
+    with pytest.raises(ValueError, match="time_curriculum"):
+        RigidFieldConfig(time_curriculum=1.5)
+
+
 def test_the_rigid_field_is_the_scene_away_from_its_parts_and_needs_tracks():
     cond = Conditioning("time", ("time",), ((0.0, 1.0),), object_tracks=[_track()])
     field = RigidField(AABB, cond)
@@ -198,3 +243,25 @@ def test_rigid_moves_the_toy_rollouts_objects_between_captured_steps(tmp_path, t
     # measured: 24.9 dB in the training frames, 24.4 at the held-out steps
     assert scores["test"] > 21.0
     assert scores["test"] > scores["train"] - 2.0
+
+
+@pytest.mark.slow(10)
+def test_training_with_a_time_curriculum_draws_rays_only_up_to_the_limit(tmp_path, toy_mjcf):
+    from nerfbot.train.trainer import TrainConfig, Trainer
+    ds = load_dataset(capture_toy_rollout(tmp_path, toy_mjcf))
+    options = {"samples_per_batch": 2048, "grid_resolution": 32, "log2_hashmap_size": 12,
+               "planes_time_res": 11, "time_curriculum": 0.5}
+    trainer = Trainer(ds, tmp_path / "rigid", TrainConfig(
+        method="rigid", max_steps=12, seed=0, progress=False, options=options))
+    bank = trainer.bank
+    times = bank.conds[:, 0]
+    assert (times[1:] >= times[:-1]).all()  # the bank holds the frames in order of time
+    seen = []
+    trainer.train(on_step=lambda t: seen.append(
+        (bank.time_limit, float(times[bank.last_slots].max()))))
+    limits = [limit for limit, _ in seen]
+    assert limits[0] == float(times[0]) and limits[6:] == [None] * 6
+    assert all(a < b for a, b in zip(limits[:6], limits[1:6]))
+    assert all(latest <= limit for limit, latest in seen[:6])
+    assert seen[-1][1] > limits[5]  # then the later frames train too
+    assert int(trainer.model.field.steps_joined[0]) == len(trainer.model.field.parts[0].times)

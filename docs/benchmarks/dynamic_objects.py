@@ -10,7 +10,10 @@ variant's flags (:data:`VARIANTS`): ``uniform`` rays (``--dynamic-rays 0``), ``w
 rays by the training error instead of the images' change: ``--error-rays 0.5``), or, for
 ``rigid``, ``static`` (a static scene around the parts: ``--option moving_scene=false``) or
 ``increments`` (each step's rotation trained as a turn from the step before:
-``--option rotation_increments=true``).
+``--option rotation_increments=true``), ``curriculum`` (the frames that train grow forward
+in time over half the budget, each joining step's turn carried on: ``--option
+time_curriculum=0.5``), ``curriculum_rot10`` (the same with ten times the rotations' learning
+rate), ``curriculum_still`` and ``curriculum_half`` (that, carrying none or half of the turn).
 
 ``BENCH/<capture>`` holds the captures made by the commands in BENCHMARKS.md. Each method is
 trained alone (``nerfbot train --max-seconds S``) into ``BENCH/run_<capture>_<method>`` (kept
@@ -56,7 +59,14 @@ VARIANTS = {"": [], "uniform": ["--dynamic-rays", "0"],
             "warmup": ["--option", "dynamic_warmup=0.2"],
             "errors": ["--dynamic-rays", "0", "--error-rays", "0.5"],
             "static": ["--option", "moving_scene=false"],
-            "increments": ["--option", "rotation_increments=true"]}
+            "increments": ["--option", "rotation_increments=true"],
+            "curriculum": ["--option", "time_curriculum=0.5"],
+            "curriculum_rot10": ["--option", "time_curriculum=0.5",
+                                 "--option", "rotation_lr_factor=10"],
+            "curriculum_still": ["--option", "time_curriculum=0.5", "--option",
+                                 "rotation_lr_factor=10", "--option", "curriculum_carry=0"],
+            "curriculum_half": ["--option", "time_curriculum=0.5", "--option",
+                                "rotation_lr_factor=10", "--option", "curriculum_carry=0.5"]}
 
 
 def object_mask(dataset, i: int) -> np.ndarray:

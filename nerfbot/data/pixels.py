@@ -58,6 +58,15 @@ class ValidPixels:
         at = torch.searchsorted(listed, pixels).clamp_(max=len(listed) - 1)
         return (listed[at] == pixels) == listed_valid
 
+    def count_below(self, pixel: int) -> int:
+        """How many valid pixels have a flat index below ``pixel``."""
+        if self.valid is not None:
+            return int(torch.searchsorted(self.valid.long(), torch.tensor([pixel],
+                                          device=self.valid.device)))
+        invalid = self.skip.long() + torch.arange(len(self.skip), device=self.skip.device)
+        return pixel - int(torch.searchsorted(invalid, torch.tensor([pixel],
+                                              device=invalid.device)))
+
     def pixel(self, rank: torch.Tensor) -> torch.Tensor:
         """(n,) int64 pixel indices of the valid pixels of (n,) ranks in [0, V)."""
         if self.valid is not None:
@@ -124,6 +133,11 @@ class PixelBank:
         self.conds = None if conditions is None else \
             torch.as_tensor(conditions[indices], dtype=torch.float32, device=device)
         """(frames, C) condition vector of each frame (time or joints), None when static."""
+        self.time_limit: Optional[float] = None
+        """The latest frame time :meth:`sample` draws from (:meth:`set_time_limit`), or None."""
+        self._drawable_end: Optional[int] = None
+        """With a time limit, the end of the flat pixel range the limit keeps (its frames are
+        the first ones), else None."""
 
     def _valid_pixels(self, dataset: Dataset, indices: list[int]) -> Optional[ValidPixels]:
         masks = [dataset.valid_mask(i) for i in indices]
@@ -290,6 +304,44 @@ class PixelBank:
         self.importance_fraction = float(fraction)
         self.importance_debias = float(debias)
 
+    def set_time_limit(self, limit: Optional[float]) -> None:
+        """Let :meth:`sample` draw only pixels of frames whose time (the conditions' first
+        column) is at most ``limit``; None: every frame. The frames must be in order of time
+        (build the bank from time-sorted indices) and at least the first must be kept.
+        Importance draws keep their weights' proportions within the kept frames; keypoints and
+        clicks are drawn from every frame."""
+        if limit == self.time_limit:
+            return
+        if limit is None:
+            self.time_limit = self._drawable_end = None
+            return
+        if self.conds is None or self.conds.shape[1] != 1:
+            raise ValueError("a time limit needs a time-conditioned bank (one condition column)")
+        if self.error_map is not None:
+            raise ValueError("a time limit and an error map cannot both choose the training "
+                             "rays; set --error-rays 0")
+        times = self.conds[:, 0]
+        if bool((times[1:] < times[:-1]).any()):
+            raise ValueError("a time limit needs the bank's frames in order of time")
+        kept = int(torch.searchsorted(times, torch.tensor([float(limit)], device=times.device),
+                                      right=True))
+        if kept == 0:
+            raise ValueError(f"time limit {limit} keeps no frame (the first is at "
+                             f"{float(times[0]):.4g})")
+        self.time_limit = float(limit)
+        self._drawable_end = None if kept == len(times) else int(self.offsets[kept])
+
+    def _drawable(self) -> int:
+        """V, the pixels a uniform draw chooses from (valid ones within the time limit)."""
+        end = len(self) if self._drawable_end is None else self._drawable_end
+        return end if self.valid is None else (
+            len(self.valid) if self._drawable_end is None else self.valid.count_below(end))
+
+    def _importance_total(self) -> torch.Tensor:
+        """W, the importance weights' sum over the drawable range."""
+        cdf = self._importance_cdf
+        return cdf[-1] if self._drawable_end is None else cdf[self._drawable_end - 1]
+
     @staticmethod
     def _check_draw_settings(fraction: float, debias: float) -> None:
         if not 0.0 <= fraction <= 1.0:
@@ -327,25 +379,27 @@ class PixelBank:
 
     def _uniform_pixels(self, n: int, generator: torch.Generator) -> torch.Tensor:
         if self.valid is None:
-            return torch.randint(len(self), (n,), generator=generator).to(self.device)
-        return self.valid.pixel(torch.randint(len(self.valid), (n,), generator=generator)
+            return torch.randint(self._drawable(), (n,), generator=generator).to(self.device)
+        return self.valid.pixel(torch.randint(self._drawable(), (n,), generator=generator)
                                 .to(self.device))
 
     def _important_pixels(self, n: int, generator: torch.Generator) -> torch.Tensor:
         cdf = self._importance_cdf
-        u = torch.rand(n, generator=generator, dtype=torch.float64).to(self.device) * cdf[-1]
+        u = torch.rand(n, generator=generator, dtype=torch.float64).to(self.device)
+        u = u * self._importance_total()
+        end = len(cdf) if self._drawable_end is None else self._drawable_end
         # the first pixel whose cumulative weight exceeds u: never one of weight 0
-        return torch.searchsorted(cdf, u, right=True).clamp_(max=len(cdf) - 1)
+        return torch.searchsorted(cdf, u, right=True).clamp_(max=end - 1)
 
     def _loss_weights(self, p: torch.Tensor, slot: torch.Tensor) -> torch.Tensor:
         """(n,) ((1 / V) / q) ** debias of pixels ``p`` in frame slots ``slot`` (see
         :meth:`set_importance`)."""
         f = self.importance_fraction
-        drawable = len(self) if self.valid is None else len(self.valid)
+        drawable = self._drawable()
         if self.error_map is not None:
             share = self.error_map.probability(p, slot) * drawable
         else:
-            share = self._importance[p].double() * drawable / self._importance_cdf[-1]
+            share = self._importance[p].double() * drawable / self._importance_total()
         return (1.0 / ((1.0 - f) + f * share)).pow(self.importance_debias).float()
 
     def sample(self, n: int, generator: torch.Generator, supersample: int = 1,
@@ -359,7 +413,8 @@ class PixelBank:
         through a uniformly random point of each pixel: (n,) rays. With S > 1 each pixel gets
         S x S rays, one through a uniformly random point of each cell of an S x S grid over the
         pixel (stratified): (n * S * S,) rays, pixel after pixel."""
-        weighted = self._importance_cdf is not None or self.error_map is not None
+        weighted = self.error_map is not None or (  # the kept frames may hold no weight yet
+            self._importance_cdf is not None and float(self._importance_total()) > 0.0)
         k = round(n * self.importance_fraction) if weighted else 0
         p = self._uniform_pixels(n - k, generator)
         if k:

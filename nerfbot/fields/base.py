@@ -92,6 +92,12 @@ class Field(nn.Module, metaclass=abc.ABCMeta):
         new optimiser. Default: nothing."""
         return {}
 
+    def training_time_limit(self, progress: float) -> Optional[float]:
+        """The latest time (a time-conditioned field's condition, in [0, 1]) whose frames train
+        at ``progress`` in [0, 1] of the budget, for a field that learns a scene forward in
+        time; None: every frame trains. Default: None."""
+        return None
+
     def regularizer(self) -> Optional[torch.Tensor]:
         """A scalar added to the training loss (e.g. smoothness of a space-time grid), or None."""
         return None

@@ -57,11 +57,22 @@ class RigidFieldConfig:
     """Transmittance of a ray crossing a part's cube along its diagonal at initialisation."""
     pose_lr_scale: float = 0.1
     """Learning rate of the poses relative to the method's (metres and radians per step, about,
-    under Adam)."""
+    under Adam); 0 freezes the tracks."""
     rotation_increments: bool = False
     """Train each step's rotation as a turn from the step before it (the first step's as it is),
     so the images of every later step also train an earlier step's turn; False: one rotation
     per step, each trained by its own step's images."""
+    rotation_lr_factor: float = 1.0
+    """Learning rate of the rotations relative to the poses' (``pose_lr_scale``)."""
+    time_curriculum: float = 0.0
+    """Learn the scene forward in time: over this fraction of the budget the frames that train
+    grow from the first time step's to all of them, and each step's rotation, when its frames
+    join, starts from its body's last turn carried on (constant angular velocity from the two
+    steps before), so a part sharp at earlier steps follows its body's turns; 0: every frame
+    from the start."""
+    curriculum_carry: float = 1.0
+    """With ``time_curriculum``: the share of its body's last turn a joining step starts from
+    (1: a constant angular velocity; 0: the step before's rotation)."""
     moving_scene: bool = True
     """The scene around the parts is ``kplanes`` (static field + space-time planes: shadows,
     bodies without a track, what a part's pose misses); False: a static ngp field, so
@@ -77,6 +88,13 @@ class RigidFieldConfig:
                              f"{self.part_initial_transmittance}")
         if not 0.0 <= self.pose_lr_scale < math.inf:
             raise ValueError(f"pose_lr_scale must be >= 0 and finite, got {self.pose_lr_scale}")
+        if not 0.0 <= self.rotation_lr_factor < math.inf:
+            raise ValueError(f"rotation_lr_factor must be >= 0 and finite, got "
+                             f"{self.rotation_lr_factor}")
+        if not 0.0 <= self.curriculum_carry <= 1.0:
+            raise ValueError(f"curriculum_carry must be in [0, 1], got {self.curriculum_carry}")
+        if not 0.0 <= self.time_curriculum <= 1.0:
+            raise ValueError(f"time_curriculum must be in [0, 1], got {self.time_curriculum}")
 
 
 class RigidPart(nn.Module):
@@ -129,6 +147,24 @@ class RigidPart(nn.Module):
             rot = torch.cat([rot[:shift], rot[:-shift] @ rot[shift:]])
             shift *= 2
         return rot
+
+    @torch.no_grad()
+    def carry_on_rotation(self, j: int, share: float = 1.0) -> None:
+        """Start step ``j``'s rotation (j >= 1) from step j - 1's turned on by ``share`` of the
+        turn between steps j - 2 and j - 1 (``R_j = exp(share log(R_{j-1} R_{j-2}^T))
+        R_{j-1}``; 1: a constant angular velocity in the world, 0: step j - 1's rotation);
+        with increments, step j's turn is ``share`` of step j - 1's."""
+        if j < 1:
+            return
+        if self.increments:
+            self.rotations[j] = share * self.rotations[j - 1] if j >= 2 else 0.0
+            return
+        if j < 2:
+            self.rotations[j] = self.rotations[j - 1]
+            return
+        r = so3_exp(self.rotations[j - 2:j])
+        turn = so3_exp(share * so3_log((r[1] @ r[0].T)[None]))[0]
+        self.rotations[j] = so3_log((turn @ r[1])[None])[0]
 
     def pose(self, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Rotations (N, 3, 3) body -> world and centres (N, 3) at times t (N,) between the two
@@ -190,6 +226,11 @@ class RigidField(Field):
         geo = self.ngp_config.geo_feat_dim
         self.parts = nn.ModuleList(RigidPart(track, rc, geo, seed + 10 + k)
                                    for k, track in enumerate(conditioning.object_tracks))
+        if rc.time_curriculum > 0:
+            times = torch.cat([part.times for part in self.parts])
+            self.time_span = (float(times.min()), float(times.max()))
+            # how many of each part's steps have joined training (a checkpoint keeps it)
+            self.register_buffer("steps_joined", torch.zeros(len(self.parts), dtype=torch.long))
 
     def _time(self, cond: Optional[torch.Tensor], x: torch.Tensor) -> torch.Tensor:
         return x.new_zeros(x.shape[0]) if cond is None else cond[:, 0].to(x.dtype)
@@ -230,7 +271,24 @@ class RigidField(Field):
                     sigma = sigma.index_add(0, chunk[inside], part(y[inside])[0])
         return sigma
 
+    def training_time_limit(self, progress: float) -> Optional[float]:
+        """With ``time_curriculum`` c > 0: the first training step's time, moving linearly to
+        the last one's over the first c of the budget; then None (every frame)."""
+        c = self.rconfig.time_curriculum
+        if c <= 0 or progress >= c:
+            return None
+        first, last = self.time_span
+        return first + (last - first) * progress / c
+
     def before_step(self, step: int, progress: float) -> dict:
+        if self.rconfig.time_curriculum > 0:
+            limit = self.training_time_limit(progress)
+            for k, part in enumerate(self.parts):
+                joined = len(part.times) if limit is None else \
+                    int((part.times <= limit).sum())
+                for j in range(int(self.steps_joined[k]), joined):
+                    part.carry_on_rotation(j, self.rconfig.curriculum_carry)
+                self.steps_joined[k] = max(joined, int(self.steps_joined[k]))
         return self.scene.before_step(step, progress)
 
     def prunable(self) -> bool:
@@ -245,11 +303,13 @@ class RigidField(Field):
     def param_groups(self) -> list[dict]:
         grids = [g for part in self.parts for g in part.grids]
         mlps = [p for part in self.parts for p in part.mlp.parameters()]
-        poses = [p for part in self.parts for p in (part.centres, part.rotations)]
+        rc = self.rconfig
         return self.scene.param_groups() + [
             {"params": grids, "lr_scale": 1.0},
             {"params": mlps, "lr_scale": self.ngp_config.mlp_lr_scale},
-            {"params": poses, "lr_scale": self.rconfig.pose_lr_scale}]
+            {"params": [part.centres for part in self.parts], "lr_scale": rc.pose_lr_scale},
+            {"params": [part.rotations for part in self.parts],
+             "lr_scale": rc.pose_lr_scale * rc.rotation_lr_factor}]
 
     @torch.no_grad()
     def move_points(self, x0: torch.Tensor, t0: float, t1: float

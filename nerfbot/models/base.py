@@ -135,6 +135,12 @@ class Model(nn.Module, metaclass=abc.ABCMeta):
         a new optimiser (as TensoRF and Plenoxels do after upsampling)."""
         return {}
 
+    def training_time_limit(self, progress: float) -> Optional[float]:
+        """The latest frame time that trains at ``progress`` (the field's
+        :meth:`~nerfbot.fields.base.Field.training_time_limit`); None: every frame."""
+        field = getattr(self, "field", None)
+        return None if field is None else field.training_time_limit(progress)
+
     def use_run_loader(self, loader: Callable[..., tuple]) -> None:
         """Give the model a way to open other trained runs, ``loader(run_dir, device=...) ->
         (model, info)``, for methods that learn from one (a distillation teacher); the trainer

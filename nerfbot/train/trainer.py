@@ -196,8 +196,11 @@ class Trainer:
         self.lr = config.lr if config.lr is not None else self.method.lr
         self.optimizer = self._make_optimizer()
         conditioning = Conditioning.from_dict(self.spec["conditioning"])
-        self.bank = PixelBank(dataset, dataset.indices("train"), self.device,
-                              frame_conditions(dataset, conditioning))
+        conditions = frame_conditions(dataset, conditioning)
+        train = dataset.indices("train")
+        if self.model.training_time_limit(0.0) is not None:  # a time window: frames by time
+            train = sorted(train, key=lambda i: float(conditions[i, 0]))
+        self.bank = PixelBank(dataset, train, self.device, conditions)
         self.model.init_mean_color(self.bank.mean_color())
         if conditioning.kind == "time" and config.dynamic_rays > 0:
             self._load_importance()
@@ -235,7 +238,7 @@ class Trainer:
         """Draw ``dynamic_rays`` of every batch where the training frames change over time
         (:func:`~nerfbot.data.importance.importance_weights`), when some camera films several
         of them."""
-        weights, repeated = importance_weights(self.dataset, self.dataset.indices("train"))
+        weights, repeated = importance_weights(self.dataset, self.bank.frames.tolist())
         if not repeated or not float(weights.sum()) > 0.0:
             log.info("dynamic rays: no camera films several time steps with a change between "
                      "them; rays are drawn uniformly")
@@ -254,7 +257,7 @@ class Trainer:
         per class)."""
         c = self.config
         classes = LabelClasses.from_dict(self.spec["labels"])
-        maps = label_maps(self.dataset, classes, self.dataset.indices("train"))
+        maps = label_maps(self.dataset, classes, self.bank.frames.tolist())
         if c.label_clicks is not None:
             maps = click_maps(maps, c.label_clicks, c.seed)
         count = self.bank.load_labels(maps, sparse=c.label_clicks is not None)
@@ -420,6 +423,7 @@ class Trainer:
                 t0 = time.perf_counter()
                 progress = self.progress()
                 upkeep = self.model.before_step(self.step, self.generator, progress)
+                self.bank.set_time_limit(self.model.training_time_limit(progress))
                 if upkeep.pop("params_changed", False):
                     self.optimizer = self._make_optimizer()
                 lr = learning_rate(self.lr, self.method.lr_final_factor, progress)
