@@ -368,3 +368,28 @@ def test_ngp_sh_warmup_starts_view_independent_and_trains_each_band_once_open():
         assert bool((grad.abs().sum() > 0) == open_)
     with pytest.raises(ValueError, match="sh_warmup"):
         NGPField(aabb, NGPFieldConfig(sh_warmup=1.0))
+
+
+def test_bf16_mlp_pads_rows_and_matches_float32():
+    """run_mlp in bf16: any row count, float32 output of that many rows, values and weight
+    gradients within bfloat16's precision of the float32 network's; padding rows add nothing
+    to the gradients."""
+    from nerfbot.fields.base import MLP_ROW_BUCKET, mlp, run_mlp
+    torch.manual_seed(0)
+    net = mlp(32, 64, 2, 4)
+    n = MLP_ROW_BUCKET + 37
+    x = torch.randn(n, 32)
+    grads = {}
+    outs = {}
+    for precision in ("fp32", "bf16"):
+        net.zero_grad()
+        out = run_mlp(net, x, precision)
+        assert out.shape == (n, 4) and out.dtype == torch.float32
+        out.square().mean().backward()
+        outs[precision] = out.detach()
+        grads[precision] = [p.grad.clone() for p in net.parameters()]
+    scale = outs["fp32"].abs().max()
+    assert (outs["bf16"] - outs["fp32"]).abs().max() < 0.03 * scale
+    for g32, g16 in zip(grads["fp32"], grads["bf16"]):
+        assert torch.isfinite(g16).all()
+        assert (g16 - g32).norm() < 0.05 * g32.norm()

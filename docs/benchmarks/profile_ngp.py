@@ -16,7 +16,8 @@ losses, backward, and the optimiser. Timers synchronise nothing (CPU
 only) and add one `perf_counter` pair per call.
 
 The bound: a step that trains on M samples must at least (a) run the MLPs' FLOPs forward and
-backward (3x the forward's) for them, at the measured rate of a (M, 64) x (64, 64) matmul,
+backward (3x the forward's) for them, at the measured rate of a (M, 64) x (64, 64) matmul in
+the MLPs' precision (``mlp_precision``: float32, or bfloat16 with ``--option mlp_precision=bf16``),
 (b) stream the Adam state of every parameter (parameters, gradients and two moments read, three
 written) at the measured copy bandwidth, and (c) read the hash-table rows of every sample's 8
 cell corners on every level, and add into them in the backward pass: the memory floor of the
@@ -111,9 +112,11 @@ def matmul_gflops(n: int = 1024) -> float:
     return _best_rate(2 * n ** 3 / 1e9, lambda: a @ b)
 
 
-def mlp_like_gflops(rows: int = 1 << 15, width: int = 64) -> float:
-    """Measured rate (GFLOP/s) of the matmul shape a tiny MLP runs: (rows, 64) x (64, 64)."""
-    x, w = torch.randn(rows, width), torch.randn(width, width)
+def mlp_like_gflops(rows: int = 1 << 15, width: int = 64,
+                    dtype: torch.dtype = torch.float32) -> float:
+    """Measured rate (GFLOP/s) of the matmul shape a tiny MLP runs: (rows, 64) x (64, 64), in
+    ``dtype``."""
+    x, w = torch.randn(rows, width, dtype=dtype), torch.randn(width, width, dtype=dtype)
     return _best_rate(2 * rows * width * width / 1e9, lambda: x @ w)
 
 
@@ -127,6 +130,7 @@ def copy_gbps(mb: int = 256) -> float:
 def machine_rates(best: dict | None = None) -> dict:
     """The three rates of the bound, each the best of this measurement and ``best``'s."""
     rates = {"matmul_gflops": matmul_gflops(), "mlp_shape_gflops": mlp_like_gflops(),
+             "mlp_shape_gflops_bf16": mlp_like_gflops(dtype=torch.bfloat16),
              "copy_gbps": copy_gbps()}
     return {k: max(v, (best or {}).get(k, 0.0)) for k, v in rates.items()}
 
@@ -307,7 +311,9 @@ def profile(args, out: Path) -> None:
     params = sum(p.numel() for p in model.parameters())
     flops = mlp_flops_per_sample(model)
     rates = machine_rates(rates)
-    mlp_gflops, gbps = rates["mlp_shape_gflops"], rates["copy_gbps"]
+    bf16 = model.field.config.mlp_precision == "bf16"
+    mlp_gflops = rates["mlp_shape_gflops_bf16" if bf16 else "mlp_shape_gflops"]
+    gbps = rates["copy_gbps"]
     kept_per_step = kept / steps
     bound_mlp = 3 * flops * kept_per_step / (mlp_gflops * 1e9)
     adam_bytes = params * 4 * 7          # read p, g, m, v; write p, m, v
@@ -343,6 +349,10 @@ def profile(args, out: Path) -> None:
         "hash_points_last_step": int(sum(len(x) for x in encoded)),
         "step_over_bound": (total / steps) / bound,
         "step_over_mlp_and_adam_bound": (total / steps) / (bound_mlp + bound_adam),
+        "mlp_precision": model.field.config.mlp_precision,
+        # the bound with the MLPs' FLOPs at the float32 rate, whatever precision they ran in
+        "step_over_bound_fp32_mlp": (total / steps) / (
+            bound_adam + bound_hash + 3 * flops * kept_per_step / (rates["mlp_shape_gflops"] * 1e9)),
         "render_ms_per_image": metrics["render_ms_per_image"],
         "render_phases_ms_per_image": render_phases,
         "eval_seconds": eval_s, "psnr": metrics["psnr"],

@@ -140,6 +140,28 @@ def mlp(in_dim: int, hidden: int, n_hidden_layers: int, out_dim: int) -> nn.Sequ
     return nn.Sequential(*layers)
 
 
+#: Rows of a reduced-precision MLP batch are padded to a multiple of this: oneDNN compiles a
+#: bfloat16 matmul for each new shape (about a millisecond each), and training batches and
+#: render chunks change their row count every call; padded, a few shapes recur.
+MLP_ROW_BUCKET = 2048
+
+
+def run_mlp(net: nn.Module, x: torch.Tensor, precision: str = "fp32") -> torch.Tensor:
+    """``net(x)`` for x (N, D): (N, out) float32. ``precision`` "bf16": under bfloat16 autocast
+    (AMX / AVX-512 BF16 matmuls on CPU, tensor cores on GPU; weights and their gradients stay
+    float32), the rows padded to a multiple of :data:`MLP_ROW_BUCKET` with zeros and the
+    padding dropped from the output; "fp32": plain float32."""
+    if precision != "bf16":
+        return net(x)
+    n = x.shape[0]
+    pad = -n % MLP_ROW_BUCKET
+    if pad:
+        x = torch.nn.functional.pad(x, (0, 0, 0, pad))
+    with torch.autocast(x.device.type, dtype=torch.bfloat16):
+        out = net(x)
+    return out[:n].float()
+
+
 class BoxNormalizer(nn.Module):
     """Maps world points into [0, 1]^3 of the cube enclosing the scene bounds (isotropic)."""
 

@@ -8,7 +8,8 @@ from typing import Optional
 
 import torch
 
-from nerfbot.fields.base import BoxNormalizer, ContractedNormalizer, Field, mlp, trunc_exp
+from nerfbot.fields.base import (BoxNormalizer, ContractedNormalizer, Field, mlp, run_mlp,
+                                 trunc_exp)
 from nerfbot.ops.encodings import HashGridConfig, SHEncoding
 
 
@@ -44,8 +45,10 @@ class NGPFieldConfig(HashGridConfig):
     density queries at points (maps, meshes) always see every level."""
     mlp_precision: str = "fp32"
     """"bf16": the MLPs run under bfloat16 autocast (AMX / AVX-512 BF16 on CPU, tensor cores on
-    GPU), weights and Adam state stay float32; "fp32": plain float32. On the 2-core CPU here
-    the casts cost more than AMX saves (2.2 vs 3.0 steps/s), so fp32 is the default."""
+    GPU), their rows padded to a multiple of 2048 (:func:`~nerfbot.fields.base.run_mlp`),
+    weights and Adam state float32; "fp32": plain float32. On a 2-core CPU with AMX, bf16's
+    matmuls are 4-5x faster, but a whole step gains 6-8 % (section 7 of BENCHMARKS.md), so fp32
+    is the default."""
 
 
 class NGPField(Field):
@@ -99,10 +102,6 @@ class NGPField(Field):
         return [{"params": [self.encoding.table], "lr_scale": 1.0},
                 {"params": mlps, "lr_scale": self.config.mlp_lr_scale}]
 
-    def _autocast(self, x: torch.Tensor):
-        return torch.autocast(x.device.type, dtype=torch.bfloat16,
-                              enabled=self.config.mlp_precision == "bf16")
-
     @property
     def uses_footprint(self) -> bool:
         return self.config.footprint_scale > 0
@@ -128,10 +127,7 @@ class NGPField(Field):
 
     def density_at_scale(self, x: torch.Tensor, radius: Optional[torch.Tensor],
                          cond: Optional[torch.Tensor] = None):
-        enc = self._encode(x, radius)
-        with self._autocast(x):
-            h = self.density_mlp(enc)
-        h = h.float()
+        h = run_mlp(self.density_mlp, self._encode(x, radius), self.config.mlp_precision)
         sigma = trunc_exp(h[:, 0] + self.density_bias)
         if self.normalize.contracted:
             sigma = sigma * self.normalize.density_scale(x)
@@ -142,9 +138,8 @@ class NGPField(Field):
         sh = self.dir_encoding(d)
         if self._sh_weights is not None:
             sh = sh * self._sh_weights.to(sh.device)
-        with self._autocast(d):
-            h = self.color_mlp(torch.cat([feat, sh], -1))
-        return torch.sigmoid(h.float())
+        return torch.sigmoid(run_mlp(self.color_mlp, torch.cat([feat, sh], -1),
+                                     self.config.mlp_precision))
 
     def before_step(self, step: int, progress: float) -> dict:
         """During the SH warm-up (:attr:`NGPFieldConfig.sh_warmup`), weigh band l >= 1 by

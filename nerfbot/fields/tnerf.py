@@ -15,7 +15,7 @@ from typing import Optional
 import torch
 
 from nerfbot.data.conditioning import Conditioning
-from nerfbot.fields.base import mlp, trunc_exp
+from nerfbot.fields.base import mlp, run_mlp, trunc_exp
 from nerfbot.fields.ngp import NGPField, NGPFieldConfig
 from nerfbot.ops.encodings import FrequencyEncoding
 
@@ -57,9 +57,7 @@ class TNeRFField(NGPField):
                          cond: Optional[torch.Tensor] = None):
         enc = self._encode(x, radius)
         c = self.cond_encoding(self._cond(cond, x.shape[0], enc))
-        with self._autocast(x):
-            h = self.density_mlp(torch.cat([enc, c], -1))
-        h = h.float()
+        h = run_mlp(self.density_mlp, torch.cat([enc, c], -1), self.config.mlp_precision)
         sigma = trunc_exp(h[:, 0] + self.density_bias)
         sigma = torch.where(self.normalize.inside(x), sigma, torch.zeros_like(sigma))
         return sigma, h[:, 1:]

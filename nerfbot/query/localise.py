@@ -7,7 +7,9 @@
   colour says nothing about a pose that moves it by more than a few pixels. The ray origins'
   gradients are kept only across their rays (:func:`across_rays`): along a ray they are
   quadrature noise, which Adam's per-coordinate scaling would turn into steps along the view
-  axis.
+  axis. With ``coarse_levels`` it first descends on whole blurred images at 16 x 16, 32 x 32,
+  ... pixels, coarse to fine, whose error changes smoothly over shifts of several of their
+  pixels: a wider basin for the same descent.
 - :func:`localise_wide`: widens the basin by comparing whole images, blurred, and by direct
   image alignment (:mod:`nerfbot.query.direct_alignment`): a grid of hypotheses around the
   guess is scored by 16 x 16 renders; from the guess and the best few, the observed image is
@@ -84,6 +86,16 @@ class InerfConfig:
         planar: update (dx, dy, dyaw) in the world instead of a 6-DoF twist (module docstring).
         across_rays: pass the ray origins' gradients only across their rays
             (:func:`across_rays`); False: the raw gradients of the samples' positions.
+        coarse_levels: whole-image levels descended before the sparse pixels, coarse to fine:
+            the observed image area-averaged to ``coarse_resolution`` pixels square, then
+            twice that, ... (each level twice the last), and both it and the render at that
+            resolution blurred by ``coarse_sigma`` of its pixels. A blurred image's error
+            changes smoothly over shifts of a few of its pixels, which full-resolution pixels
+            do not: the basin widens. 0: iNeRF as published.
+        coarse_iterations: Adam steps on each coarse level (the rate decayed to a tenth on
+            each).
+        coarse_sigma: the coarse levels' Gaussian blur, in their pixels.
+        coarse_resolution: pixels per side of the first coarse level.
     """
 
     iterations: int = 80
@@ -94,6 +106,18 @@ class InerfConfig:
     dilate: int = 3
     planar: bool = False
     across_rays: bool = True
+    coarse_levels: int = 0
+    coarse_iterations: int = 20
+    coarse_sigma: float = 1.0
+    coarse_resolution: int = 16
+
+    def __post_init__(self):
+        if (self.coarse_levels < 0 or self.coarse_iterations < 1 or not self.coarse_sigma >= 0
+                or self.coarse_resolution < 2):
+            raise ValueError(f"InerfConfig: coarse_levels must be >= 0, coarse_iterations >= 1, "
+                             f"coarse_sigma >= 0 and coarse_resolution >= 2, got "
+                             f"{self.coarse_levels}, {self.coarse_iterations}, "
+                             f"{self.coarse_sigma}, {self.coarse_resolution}")
 
 
 @dataclass
@@ -227,10 +251,11 @@ def _descend(model, obs: _Observation, c2w0: torch.Tensor, iterations: int, rays
 
 class _LowRes:
     """The observed image area-averaged to ``res`` x ``res`` pixels and blurred by ``sigma``
-    of them, and the whole-image photometric error of poses rendered at that resolution."""
+    of them, and the whole-image photometric error of poses rendered at that resolution
+    (the origins' gradients only across their rays with ``across``, :func:`across_rays`)."""
 
-    def __init__(self, model, obs: _Observation, res: int, sigma: float):
-        self.model, self.res, self.sigma = model, res, sigma
+    def __init__(self, model, obs: _Observation, res: int, sigma: float, across: bool = False):
+        self.model, self.res, self.sigma, self.across = model, res, sigma, across
         small = cv2.resize(obs.rgb.cpu().numpy(), (res, res), interpolation=cv2.INTER_AREA)
         self.target = blur(
             torch.as_tensor(small, device=obs.device).permute(2, 0, 1)[None], sigma)
@@ -244,6 +269,8 @@ class _LowRes:
         rays = pixel_rays(c2w.repeat_interleave(n, 0), o.fx * self.sx, o.fy * self.sy,
                           o.cx * self.sx, o.cy * self.sy, self.px.repeat(k), self.py.repeat(k),
                           1 / self.sx, 1 / self.sy)
+        if self.across:
+            rays = across_rays(rays)
         rgb = self.model.render_rays_differentiable(rays).rgb
         rgb = rgb.reshape(k, self.res, self.res, 3).permute(0, 3, 1, 2)
         return ((blur(rgb, self.sigma) - self.target) ** 2).mean((1, 2, 3))
@@ -285,8 +312,16 @@ def inerf(model, image: np.ndarray, intrinsics, c2w_init: np.ndarray,
     obs = _Observation(image, intrinsics, config, torch.Generator().manual_seed(seed), device)
     c2w0 = torch.as_tensor(np.asarray(c2w_init, np.float32), device=device)[None]
     with _Frozen(model):
-        c2w, losses = _descend(model, obs, c2w0, config.iterations, config.rays, config.lr,
-                               config.planar)
+        c2w, losses = c2w0, []
+        for level in range(config.coarse_levels):
+            res = min(config.coarse_resolution << level, obs.w, obs.h)
+            coarse = _LowRes(model, obs, res, config.coarse_sigma, config.across_rays)
+            c2w, _, coarse_losses = _adam(c2w, config.planar, config.coarse_iterations,
+                                          config.lr, coarse)
+            losses += coarse_losses
+        c2w, fine_losses = _descend(model, obs, c2w, config.iterations, config.rays, config.lr,
+                                    config.planar)
+        losses += fine_losses
         with torch.no_grad():
             loss = float(_photometric(model, obs, c2w, *_evaluation_pixels(obs, 1024, seed))[0])
     return PoseEstimate(c2w[0].cpu().numpy().astype(float), loss, time.perf_counter() - t0,
