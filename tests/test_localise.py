@@ -199,6 +199,21 @@ def test_coarse_levels_widen_inerfs_basin_on_the_painted_room():
         assert len(est.losses) == 2 * InerfConfig().coarse_iterations + InerfConfig().iterations
 
 
+def test_supersampled_coarse_renders_match_the_area_averaged_image_better():
+    """At the true pose a 16 x 16 render whose pixels average 4 x 4 rays is closer to the
+    observed image's area average than one ray per pixel (sub-rays in the wrong pixels
+    would be farther)."""
+    from nerfbot.query.localise import _LowRes, _Observation
+    model = PaintedRoom()
+    truth = look_at([0.3, -0.4, 0.45], [2.0, 0.2, 0.6])
+    image, intr = painted_room_view(model, truth)
+    obs = _Observation(image, intr, InerfConfig(interest=False), torch.Generator(), "cpu")
+    c2w = torch.as_tensor(truth, dtype=torch.float32)[None]
+    with torch.no_grad():
+        errors = [float(_LowRes(model, obs, 16, 0.0, supersample=s)(c2w)[0]) for s in (1, 4)]
+    assert errors[1] < 0.5 * errors[0], errors
+
+
 def test_inerf_config_rejects_bad_coarse_levels():
     with pytest.raises(ValueError, match="coarse_levels"):
         InerfConfig(coarse_levels=-1)

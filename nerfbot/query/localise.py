@@ -96,6 +96,9 @@ class InerfConfig:
             each).
         coarse_sigma: the coarse levels' Gaussian blur, in their pixels.
         coarse_resolution: pixels per side of the first coarse level.
+        coarse_supersample: s: each coarse pixel rendered as the mean of s x s rays through
+            it (the observed image's pixels there are area averages); 1: one ray, at its
+            centre.
     """
 
     iterations: int = 80
@@ -110,14 +113,16 @@ class InerfConfig:
     coarse_iterations: int = 20
     coarse_sigma: float = 1.0
     coarse_resolution: int = 16
+    coarse_supersample: int = 1
 
     def __post_init__(self):
         if (self.coarse_levels < 0 or self.coarse_iterations < 1 or not self.coarse_sigma >= 0
-                or self.coarse_resolution < 2):
+                or self.coarse_resolution < 2 or self.coarse_supersample < 1):
             raise ValueError(f"InerfConfig: coarse_levels must be >= 0, coarse_iterations >= 1, "
-                             f"coarse_sigma >= 0 and coarse_resolution >= 2, got "
-                             f"{self.coarse_levels}, {self.coarse_iterations}, "
-                             f"{self.coarse_sigma}, {self.coarse_resolution}")
+                             f"coarse_sigma >= 0, coarse_resolution >= 2 and "
+                             f"coarse_supersample >= 1, got {self.coarse_levels}, "
+                             f"{self.coarse_iterations}, {self.coarse_sigma}, "
+                             f"{self.coarse_resolution}, {self.coarse_supersample}")
 
 
 @dataclass
@@ -254,24 +259,35 @@ class _LowRes:
     of them, and the whole-image photometric error of poses rendered at that resolution
     (the origins' gradients only across their rays with ``across``, :func:`across_rays`)."""
 
-    def __init__(self, model, obs: _Observation, res: int, sigma: float, across: bool = False):
+    def __init__(self, model, obs: _Observation, res: int, sigma: float, across: bool = False,
+                 supersample: int = 1):
         self.model, self.res, self.sigma, self.across = model, res, sigma, across
+        self.supersample = supersample
         small = cv2.resize(obs.rgb.cpu().numpy(), (res, res), interpolation=cv2.INTER_AREA)
         self.target = blur(
             torch.as_tensor(small, device=obs.device).permute(2, 0, 1)[None], sigma)
         self.sx, self.sy = res / obs.w, res / obs.h
-        self.px, self.py = level_pixels(res, res, obs.device)
+        px, py = level_pixels(res, res, obs.device)
+        if supersample > 1:  # s x s rays per pixel, at the centres of an s x s grid over it
+            grid = (torch.arange(supersample, dtype=torch.float32, device=obs.device) + 0.5) \
+                / supersample - 0.5
+            gy, gx = torch.meshgrid(grid, grid, indexing="ij")
+            px = (px[:, None] + gx.reshape(1, -1)).reshape(-1)
+            py = (py[:, None] + gy.reshape(1, -1)).reshape(-1)
+        self.px, self.py = px, py
         self.obs = obs
 
     def __call__(self, c2w: torch.Tensor) -> torch.Tensor:
         """(K,) mean squared error of the blurred renders of poses c2w (K, 4, 4)."""
-        k, n, o = c2w.shape[0], self.res * self.res, self.obs
+        k, n, o = c2w.shape[0], len(self.px), self.obs
+        ss = self.supersample
         rays = pixel_rays(c2w.repeat_interleave(n, 0), o.fx * self.sx, o.fy * self.sy,
                           o.cx * self.sx, o.cy * self.sy, self.px.repeat(k), self.py.repeat(k),
-                          1 / self.sx, 1 / self.sy)
+                          1 / (self.sx * ss), 1 / (self.sy * ss))
         if self.across:
             rays = across_rays(rays)
         rgb = self.model.render_rays_differentiable(rays).rgb
+        rgb = rgb.reshape(k, self.res * self.res, ss * ss, 3).mean(2)
         rgb = rgb.reshape(k, self.res, self.res, 3).permute(0, 3, 1, 2)
         return ((blur(rgb, self.sigma) - self.target) ** 2).mean((1, 2, 3))
 
@@ -315,7 +331,8 @@ def inerf(model, image: np.ndarray, intrinsics, c2w_init: np.ndarray,
         c2w, losses = c2w0, []
         for level in range(config.coarse_levels):
             res = min(config.coarse_resolution << level, obs.w, obs.h)
-            coarse = _LowRes(model, obs, res, config.coarse_sigma, config.across_rays)
+            coarse = _LowRes(model, obs, res, config.coarse_sigma, config.across_rays,
+                             config.coarse_supersample)
             c2w, _, coarse_losses = _adam(c2w, config.planar, config.coarse_iterations,
                                           config.lr, coarse)
             losses += coarse_losses
