@@ -80,6 +80,36 @@ def test_keypoint_depth_loss_is_finite_for_zero_weights_and_rays_without_samples
     assert empty.item() == 0.0
 
 
+def test_robust_keypoint_weights_follow_the_rendered_depth():
+    """With ``robust`` c each ray's loss is scaled by 1 / (1 + (r / (c sigma))^2), r the
+    distance of its expected depth from the keypoint's (float64 reference); a ray without
+    weight keeps its loss, and c = 0 is the plain loss."""
+    counts = [5, 9, 7, 12]
+    weights, t0, t1, idx = _packed(counts, seed=3)
+    weights[idx == 2] = 0.0                                    # ray 2: no weight at all
+    target = torch.tensor([1.5, 2.0, 3.0, 4.2])
+    sigma = torch.tensor([0.1, 0.3, 0.05, 0.5])
+    c = 3.0
+    expected = 0.0
+    for r in range(4):
+        m = idx == r
+        one = torch.tensor([0])
+        per_ray = _reference(weights[m], t0[m], t1[m], one.repeat(int(m.sum())),
+                             target[r:r + 1], sigma[r:r + 1])
+        w = weights[m].double()
+        mid = 0.5 * (t0[m] + t1[m]).double()
+        if float(w.sum()) > 0:
+            res = float((w * mid).sum() / w.sum()) - float(target[r])
+            per_ray /= 1.0 + (res / (c * float(sigma[r]))) ** 2
+        expected += per_ray / 4
+    robust = keypoint_depth_loss(weights, t0, t1, idx, target, sigma, robust=c)
+    assert robust.item() == pytest.approx(expected, rel=1e-5)
+    plain = keypoint_depth_loss(weights, t0, t1, idx, target, sigma)
+    assert robust.item() < plain.item()
+    assert keypoint_depth_loss(weights, t0, t1, idx, target, sigma, robust=0.0).item() == \
+        plain.item()
+
+
 def test_keypoint_depth_loss_pulls_weight_toward_the_keypoint():
     n = 40
     t0 = torch.linspace(0.0, 4.0, n + 1)[:-1]
@@ -211,3 +241,23 @@ def test_the_keypoint_term_is_added_on_the_keypoint_rays_only(tiny_capture, tmp_
     _, out, s = batch_loss(trainer.model, trainer.bank, 64, torch.Generator().manual_seed(0),
                            0.1, 32, 0.1)
     assert int((seen["pixel_weights"] == 0).sum()) == 64 // (s * s) // 4
+
+
+def test_robust_keypoint_weights_start_at_a_quarter_of_the_budget(tiny_capture, tmp_path):
+    truth = load_dataset(tiny_capture[0])
+    ds = load_dataset(_with_keypoints(tiny_capture[0], tmp_path / "kp",
+                                      lambda i, f: _true_keypoints(truth, i)))
+    trainer = Trainer(ds, tmp_path / "run", TrainConfig(
+        method="ngp", max_steps=1, sparse_depth_weight=0.1, sparse_depth_robust=3.0,
+        progress=False, options={"log2_hashmap_size": 12}))
+
+    def loss(progress, robust):
+        return float(batch_loss(trainer.model, trainer.bank, 512,
+                                torch.Generator().manual_seed(0), progress, 32, 0.1,
+                                sparse_depth_robust=robust)[0])
+
+    assert loss(0.1, 3.0) == loss(0.1, 0.0)          # before a quarter: DS-NeRF's loss
+    # after it the untrained field's depths are far from the keypoints': their terms shrink
+    assert loss(0.5, 3.0) < loss(0.5, 0.0)
+    with pytest.raises(ValueError, match="sparse_depth_robust"):
+        TrainConfig(method="ngp", max_steps=1, sparse_depth_robust=-1.0)

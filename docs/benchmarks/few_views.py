@@ -3,7 +3,7 @@
 usage: python docs/benchmarks/few_views.py WORK [--scenes tabletop,workspace:0]
                                            [--views 2,3,5,10] [--seconds 60] [--weight 0.1]
                                            [--repeats 1] [--size 512] [--downscale 4]
-                                           [--no-guided-matching]
+                                           [--robust C] [--no-guided-matching]
 
 Few-view work poses a scene from one side, as a robot's camera does from where it stands: for
 N training views, cameras on an arc of 60 degrees of azimuth around the scene's target (the
@@ -16,7 +16,8 @@ between them, at 30 and 40 degrees elevation, the same for every N. For each sce
    with the simulator's poses; images, depth and keypoints written at size / D px. The column "SfM alone"
    says whether ``nerfbot colmap`` without the poses registers the N views.
 2. ``nerfbot train --method ngp --max-seconds S --seed R``, with and without
-   ``--sparse-depth-weight W``, for R = 0 .. repeats - 1.
+   ``--sparse-depth-weight W`` (and with ``--robust C``, also with it and
+   ``--sparse-depth-robust C``), for R = 0 .. repeats - 1.
 3. ``nerfbot eval --data TESTSET --split test``: PSNR, SSIM, depth MAE on the 8 test views.
 
 Writes WORK/few_views.json (every run), WORK/few_views.png (medians over the repeats, PSNR and
@@ -99,6 +100,8 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=1, help="training seeds per point")
     ap.add_argument("--size", type=int, default=512, help="capture size, px (SfM runs on it)")
     ap.add_argument("--downscale", type=int, default=4, help="fields train on size / N px")
+    ap.add_argument("--robust", type=float, default=0.0, metavar="C",
+                    help="also train with --sparse-depth-robust C (robust keypoint weights)")
     ap.add_argument("--no-guided-matching", action="store_true",
                     help="nerfbot colmap --no-guided-matching (fewer keypoints)")
     args = ap.parse_args()
@@ -142,9 +145,12 @@ def main() -> None:
             row = {"keypoints": int(sum(len(np.load(p)) for p in files)),
                    "points": report["points"],
                    "sfm_alone": sfm_alone(capture, args.work / f"{tag}-{n}v-sfm", sfm_flags)}
-            for name, extra in (("rgb", []), ("sparse_depth",
-                                              ["--sparse-depth-weight", args.weight])):
-                if name == "sparse_depth" and not row["keypoints"]:
+            variants = [("rgb", []), ("sparse_depth", ["--sparse-depth-weight", args.weight])]
+            if args.robust > 0:
+                variants.append(("robust", ["--sparse-depth-weight", args.weight,
+                                            "--sparse-depth-robust", args.robust]))
+            for name, extra in variants:
+                if name != "rgb" and not row["keypoints"]:
                     continue
                 runs = []
                 for seed in range(args.repeats):
@@ -157,11 +163,13 @@ def main() -> None:
                                                    "test", "--json"]))
                     runs.append({k: ev.get(k) for k in (*METRICS, "steps")})
                 row[name] = {"runs": runs, "median": median_of(runs)}
-            if "sparse_depth" in row:   # paired by seed
-                pairs = list(zip(row["rgb"]["runs"], row["sparse_depth"]["runs"]))
-                row["sparse_depth_wins"] = {
-                    "psnr": sum(b["psnr"] > a["psnr"] for a, b in pairs),
-                    "depth_mae_m": sum(b["depth_mae_m"] < a["depth_mae_m"] for a, b in pairs)}
+            for name in ("sparse_depth", "robust"):   # paired by seed
+                if name in row:
+                    pairs = list(zip(row["rgb"]["runs"], row[name]["runs"]))
+                    row[f"{name}_wins"] = {
+                        "psnr": sum(b["psnr"] > a["psnr"] for a, b in pairs),
+                        "depth_mae_m": sum(b["depth_mae_m"] < a["depth_mae_m"]
+                                           for a, b in pairs)}
             rows[n] = row
             results[scene] = rows
             (args.work / "few_views.json").write_text(json.dumps(results, indent=2))
@@ -186,11 +194,16 @@ def main() -> None:
             print(f"| {scene} | {n} | {r['keypoints']} | {reg} | {rgb['psnr']:.2f} / "
                   f"{sd['psnr']:.2f} | {rgb['ssim']:.3f} / {sd['ssim']:.3f} | "
                   f"{100 * rgb['depth_mae_m']:.1f} / {100 * sd['depth_mae_m']:.1f} | {won} |")
+            if "robust" in r:
+                rb, rw = r["robust"]["median"], r["robust_wins"]
+                print(f"|   robust (C = {args.robust}) | | | | {rb['psnr']:.2f} | "
+                      f"{rb['ssim']:.3f} | {100 * rb['depth_mae_m']:.1f} | "
+                      f"{rw['psnr']}/{args.repeats}, {rw['depth_mae_m']}/{args.repeats} |")
 
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.5))
     for scene, rows in results.items():
         ns = sorted(rows)
-        for name, style in (("rgb", "o--"), ("sparse_depth", "s-")):
+        for name, style in (("rgb", "o--"), ("sparse_depth", "s-"), ("robust", "^:")):
             ok = [n for n in ns if name in rows[n]]
             axes[0].plot(ok, [rows[n][name]["median"]["psnr"] for n in ok], style,
                          label=f"{scene} {name.replace('_', ' ')}")

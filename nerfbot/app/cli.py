@@ -190,7 +190,8 @@ def cmd_capture(args) -> int:
 #: ``--resume`` those not given come from the saved run (:func:`_follow_saved_config`).
 RUN_FLAGS = {"method": "method", "seed": "seed", "lr": "lr", "option": "options",
              "background": "background", "depth_weight": "depth_weight",
-             "sparse_depth_weight": "sparse_depth_weight", "labels": "labels",
+             "sparse_depth_weight": "sparse_depth_weight",
+             "sparse_depth_robust": "sparse_depth_robust", "labels": "labels",
              "label_clicks": "label_clicks", "label_weight": "label_weight",
              "dynamic_rays": "dynamic_rays", "dynamic_rays_debias": "dynamic_rays_debias",
              "error_rays": "error_rays", "error_rays_debias": "error_rays_debias",
@@ -251,11 +252,12 @@ def _follow_saved_config(args, run: Path, saved: dict) -> dict:
                   dynamic_rays_debias=train.get("dynamic_rays_debias", 0.5),
                   error_rays=train.get("error_rays", 0.0),
                   error_rays_debias=train.get("error_rays_debias", 1.0),
-                  error_tile=train.get("error_tile", 8))
+                  error_tile=train.get("error_tile", 8),
+                  sparse_depth_robust=train.get("sparse_depth_robust", 0.0))
     checked = set(RUN_FLAGS) if args.config is not None else \
-        {"lr", "depth_weight", "sparse_depth_weight", "label_clicks", "label_weight",
-         "dynamic_rays", "dynamic_rays_debias", "error_rays", "error_rays_debias",
-         "error_tile", "eval_at"}
+        {"lr", "depth_weight", "sparse_depth_weight", "sparse_depth_robust", "label_clicks",
+         "label_weight", "dynamic_rays", "dynamic_rays_debias", "error_rays",
+         "error_rays_debias", "error_tile", "eval_at"}
     conflicts = []
     for dest in sorted(checked & given):
         mine, theirs = _comparable(dest, getattr(args, dest)), _comparable(dest, values[dest])
@@ -363,6 +365,7 @@ def _flag_train_config(args, method: str, options: dict, max_seconds, background
                 options=options, background=background,
                 depth_weight=args.depth_weight,
                 sparse_depth_weight=args.sparse_depth_weight,
+                sparse_depth_robust=args.sparse_depth_robust,
                 labels=args.labels or args.label_clicks is not None,
                 label_weight=args.label_weight, label_clicks=args.label_clicks,
                 dynamic_rays=args.dynamic_rays, dynamic_rays_debias=args.dynamic_rays_debias,
@@ -1269,6 +1272,10 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
                    help="DS-NeRF sparse depth supervision on the structure-from-motion "
                         "keypoints nerfbot colmap writes (frames[].sparse_depth_file_path); "
                         "0.1 is DS-NeRF's weight (default 0: off)")
+    p.add_argument("--sparse-depth-robust", type=float, default=0.0, metavar="C",
+                   help="robust keypoint weights: from a quarter of the budget on, a "
+                        "keypoint whose rendered depth is r from its own weighs "
+                        "1 / (1 + (r / (C sigma))^2) (default 0: every keypoint in full)")
     p.add_argument("--labels", action="store_true",
                    help="train a semantic label head (Semantic-NeRF) on the capture's "
                         "segmentation; classes: background, each object of the manifest, "

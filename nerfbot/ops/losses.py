@@ -51,7 +51,7 @@ KEYPOINT_WEIGHT_FLOOR = 1e-5
 
 def keypoint_depth_loss(weights: torch.Tensor, t_starts: torch.Tensor, t_ends: torch.Tensor,
                         ray_indices: torch.Tensor, target_t: torch.Tensor,
-                        sigma_t: torch.Tensor) -> torch.Tensor:
+                        sigma_t: torch.Tensor, robust: float = 0.0) -> torch.Tensor:
     """DS-NeRF's depth loss: the ray-termination distribution pushed toward a narrow Gaussian at
     each keypoint's distance, mean over the rays with a finite target.
 
@@ -69,6 +69,9 @@ def keypoint_depth_loss(weights: torch.Tensor, t_starts: torch.Tensor, t_ends: t
             sorted, in [0, R).
         target_t: (R,) keypoint distance along each ray, metres (NaN: no keypoint).
         sigma_t: (R,) Gaussian widths, metres (> 0 where target_t is finite).
+        robust: c > 0 weighs each ray's loss by ``1 / (1 + (r / (c sigma))^2)`` (no gradient
+            through the weight), r the distance from the ray's expected distance under its
+            (normalised) weights to the keypoint's; a ray without weight keeps 1. 0: all 1.
     Returns:
         scalar, float32 at least (0 when no ray has a keypoint, still connected to ``weights``).
     """
@@ -86,4 +89,14 @@ def keypoint_depth_loss(weights: torch.Tensor, t_starts: torch.Tensor, t_ends: t
     per_sample = torch.where(valid[ray_indices], per_sample, torch.zeros_like(per_sample))
     per_ray = torch.zeros(len(target_t), dtype=work, device=w.device).index_add(
         0, ray_indices, per_sample)
+    if robust > 0:
+        with torch.no_grad():
+            zeros = torch.zeros(len(target_t), dtype=work, device=w.device)
+            mass = zeros.index_add(0, ray_indices, w)
+            expected = zeros.index_add(0, ray_indices, w * mid) / mass.clamp_min(1e-12)
+            tgt = torch.where(valid, target_t, torch.zeros_like(target_t)).to(work)
+            sig = torch.where(valid, sigma_t, torch.ones_like(sigma_t)).to(work)
+            scaled = torch.where(mass > 1e-6, (expected - tgt) / (robust * sig),
+                                 torch.zeros_like(mass))
+        per_ray = per_ray / (1.0 + scaled ** 2)
     return per_ray[valid].mean()

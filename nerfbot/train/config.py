@@ -48,6 +48,12 @@ class TrainConfig:
     """DS-NeRF's sparse depth supervision: weight of
     :func:`~nerfbot.ops.losses.keypoint_depth_loss` on the training frames' keypoints
     (``Dataset.keypoints``, from structure from motion). 0 = off."""
+    sparse_depth_robust: float = 0.0
+    """Robust keypoint weights, c > 0: from a quarter of the budget on, each keypoint's depth
+    loss is weighed by ``1 / (1 + (r / (c sigma))^2)``, r the distance from the ray's rendered
+    expected distance to the keypoint's and sigma its width (a wrong match, which the images'
+    colours contradict, stops pulling the surface toward it); 0: every keypoint at full
+    weight, as DS-NeRF trains."""
     sparse_depth_rays: int = 256
     """Keypoint pixels per step for the sparse depth loss (at most a quarter of the batch's
     pixels); they replace as many random pixels of the batch, and only their depth is trained."""
@@ -113,6 +119,9 @@ class TrainConfig:
         if not 0.0 <= self.sparse_depth_weight < math.inf:
             raise ValueError(f"sparse_depth_weight must be >= 0 and finite, got "
                              f"{self.sparse_depth_weight}")
+        if not 0.0 <= self.sparse_depth_robust < math.inf:
+            raise ValueError(f"sparse_depth_robust must be >= 0 and finite, got "
+                             f"{self.sparse_depth_robust}")
         if isinstance(self.sparse_depth_rays, bool) or not isinstance(self.sparse_depth_rays, int) \
                 or self.sparse_depth_rays < 1:
             raise ValueError(f"sparse_depth_rays must be an integer >= 1, got "

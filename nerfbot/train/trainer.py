@@ -92,8 +92,8 @@ def sample_span(out: RenderOutput, first_ray: int, stop_ray: int) -> slice:
 
 def batch_loss(model: Model, bank: "PixelBank", n_rays: int, generator: torch.Generator,
                progress: float, keypoints: int = 0, sparse_depth_weight: float = 0.0,
-               label_weight: float = 0.0, label_pixels: int = 0
-               ) -> tuple[torch.Tensor, RenderOutput, int]:
+               label_weight: float = 0.0, label_pixels: int = 0,
+               sparse_depth_robust: float = 0.0) -> tuple[torch.Tensor, RenderOutput, int]:
     """The loss of a batch of about ``n_rays`` random training rays at ``progress`` of the
     budget: S x S rays per pixel (S = ``model.training_supersample(progress)``), whose
     colours the model averages before comparing them with the pixel's (a pixel's colour is the
@@ -102,7 +102,8 @@ def batch_loss(model: Model, bank: "PixelBank", n_rays: int, generator: torch.Ge
     With ``keypoints`` > 0, that many pixels holding sparse-depth keypoints
     (:meth:`PixelBank.sample_keypoints`; no more than a quarter of the batch's pixels) join the
     batch, as DS-NeRF trains: their rays add ``sparse_depth_weight`` x
-    :func:`~nerfbot.ops.losses.keypoint_depth_loss`, and their colours are left out of the
+    :func:`~nerfbot.ops.losses.keypoint_depth_loss` (robust with ``sparse_depth_robust`` from
+    a quarter of the budget on), and their colours are left out of the
     colour loss, which stays the mean over the random pixels (a few keypoints drawn again and
     again are not a sample of the images).
 
@@ -156,7 +157,8 @@ def batch_loss(model: Model, bank: "PixelBank", n_rays: int, generator: torch.Ge
         span = sample_span(out, first, first + keypoints * k)
         loss = loss + sparse_depth_weight * keypoint_depth_loss(
             out.weights[span], out.t_starts[span], out.t_ends[span],
-            out.ray_indices[span] - first, *depth)
+            out.ray_indices[span] - first, *depth,
+            robust=sparse_depth_robust if progress >= 0.25 else 0.0)
     if label_weight > 0:
         if click_labels is None:
             m = min(n_pixels, label_pixels)
@@ -434,7 +436,7 @@ class Trainer:
                 loss, out, supersample = batch_loss(
                     self.model, self.bank, self.n_rays, self.generator, progress,
                     keypoints, c.sparse_depth_weight,
-                    c.label_weight if c.labels else 0.0, c.label_rays)
+                    c.label_weight if c.labels else 0.0, c.label_rays, c.sparse_depth_robust)
                 if c.depth_weight > 0:
                     loss = loss + c.depth_weight * self._depth_loss(out, supersample)
                 self.optimizer.zero_grad(set_to_none=True)
