@@ -256,7 +256,8 @@ def test_robust_keypoint_weights_start_at_a_quarter_of_the_budget(tiny_capture, 
                                 torch.Generator().manual_seed(0), progress, 32, 0.1,
                                 sparse_depth_robust=robust)[0])
 
-    assert loss(0.1, 3.0) == loss(0.1, 0.0)          # before a quarter: DS-NeRF's loss
+    # before a quarter: DS-NeRF's loss (the same terms; threaded sums differ in the last bits)
+    assert loss(0.1, 3.0) == pytest.approx(loss(0.1, 0.0), rel=1e-5)
     # after it the untrained field's depths are far from the keypoints': their terms shrink
     assert loss(0.5, 3.0) < loss(0.5, 0.0)
     with pytest.raises(ValueError, match="sparse_depth_robust"):
