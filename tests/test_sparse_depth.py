@@ -261,4 +261,4 @@ def test_robust_keypoint_weights_start_at_a_quarter_of_the_budget(tiny_capture, 
     # after it the untrained field's depths are far from the keypoints': their terms shrink
     assert loss(0.5, 3.0) < loss(0.5, 0.0)
     with pytest.raises(ValueError, match="sparse_depth_robust"):
-        TrainConfig(method="ngp", max_steps=1, sparse_depth_robust=-1.0)
+        TrainConfig(method="ngp", max_steps=1, sparse_depth_robust=-1.0).validate()
