@@ -14,6 +14,18 @@ from nerfbot.data.pixels import PixelBank, ValidPixels
 pytestmark = pytest.mark.slow(5)  # rough single-core seconds (tests/conftest.py)
 
 
+def _draws(bank: PixelBank, batches: int, pixels: int) -> tuple[np.ndarray, np.ndarray]:
+    """(batches, pixels) arrays of the pixels ``bank.sample`` draws (seed 0) and their loss
+    weights."""
+    generator = torch.Generator().manual_seed(0)
+    drawn, loss_weights = [], []
+    for _ in range(batches):
+        bank.sample(pixels, generator)
+        drawn.append(bank.last_pixels.numpy())
+        loss_weights.append(bank.last_weights.numpy())
+    return np.stack(drawn), np.stack(loss_weights)
+
+
 def test_a_pixel_that_never_changes_weighs_zero_and_a_changing_one_its_temporal_variance():
     rng = np.random.default_rng(0)
     frames = np.repeat(rng.integers(0, 256, (1, 6, 5, 3), dtype=np.uint8), 7, axis=0)
@@ -44,13 +56,7 @@ def test_the_bank_draws_the_important_share_in_proportion_to_the_weights(tiny_ca
     chosen = np.array([5, 900, 4000, 7001])
     weights[chosen] = [1.0, 2.0, 3.0, 4.0]
     bank.set_importance(weights, 0.25)
-    generator = torch.Generator().manual_seed(0)
-    drawn, loss_weights = [], []
-    for _ in range(50):
-        bank.sample(4000, generator)
-        drawn.append(bank.last_pixels.numpy())
-        loss_weights.append(bank.last_weights.numpy())
-    drawn, loss_weights = np.stack(drawn), np.stack(loss_weights)
+    drawn, loss_weights = _draws(bank, 50, 4000)
     important = drawn[:, :1000].reshape(-1)                   # the first quarter of each batch
     assert set(np.unique(important)) == set(chosen)           # weight 0 is never drawn
     share = np.array([(important == p).mean() for p in chosen])
@@ -81,13 +87,7 @@ def test_a_time_limit_draws_only_the_frames_up_to_it_and_keeps_the_weights_propo
     weights[[7, per_frame + 3, 10 * per_frame]] = [1.0, 3.0, 50.0]  # frames 0, 1 and 10
     bank.set_importance(weights, 0.25)
     bank.set_time_limit(float(times[train[3], 0]))  # frames 0-3
-    generator = torch.Generator().manual_seed(0)
-    drawn, loss_weights = [], []
-    for _ in range(40):
-        bank.sample(2000, generator)
-        drawn.append(bank.last_pixels.numpy())
-        loss_weights.append(bank.last_weights.numpy())
-    drawn, loss_weights = np.stack(drawn), np.stack(loss_weights)
+    drawn, loss_weights = _draws(bank, 40, 2000)
     assert drawn.max() < 4 * per_frame and len(np.unique(drawn[:, 500:])) > 0.9 * 4 * per_frame
     important = drawn[:, :500].reshape(-1)
     assert set(np.unique(important)) == {7, per_frame + 3}
@@ -97,8 +97,8 @@ def test_a_time_limit_draws_only_the_frames_up_to_it_and_keeps_the_weights_propo
                                (1 / (4 * per_frame)) / q[drawn.reshape(-1)], rtol=1e-5)
     assert abs(loss_weights.mean() - 1.0) < 0.02
     bank.set_time_limit(None)  # every frame again, frame 10's pixel the most drawn
-    bank.sample(2000, generator)
-    assert (bank.last_pixels[:500] == 10 * per_frame).float().mean() > 0.8
+    drawn, _ = _draws(bank, 1, 2000)
+    assert (drawn[0, :500] == 10 * per_frame).mean() > 0.8
     with pytest.raises(ValueError, match="keeps no frame"):
         bank.set_time_limit(-0.1)
     with pytest.raises(ValueError, match="in order of time"):

@@ -262,3 +262,28 @@ def test_robust_keypoint_weights_start_at_a_quarter_of_the_budget(tiny_capture, 
     assert loss(0.5, 3.0) < loss(0.5, 0.0)
     with pytest.raises(ValueError, match="sparse_depth_robust"):
         TrainConfig(method="ngp", max_steps=1, sparse_depth_robust=-1.0).validate()
+
+
+def test_keypoints_leave_the_batch_after_sparse_depth_until(tiny_capture, tmp_path,
+                                                            monkeypatch):
+    config = TrainConfig(method="ngp", max_steps=8, sparse_depth_weight=0.1,
+                         sparse_depth_until=0.5, progress=False,
+                         options={"log2_hashmap_size": 12, "samples_per_batch": 4096})
+    assert [config.keypoint_pixels(p) for p in (0.0, 0.49, 0.5, 1.0)] == [256, 256, 0, 0]
+    assert TrainConfig(method="ngp", max_steps=1).keypoint_pixels(0.0) == 0
+    truth = load_dataset(tiny_capture[0])
+    ds = load_dataset(_with_keypoints(tiny_capture[0], tmp_path / "kp",
+                                      lambda i, f: _true_keypoints(truth, i)))
+    drawn = []
+    sample_keypoints = PixelBank.sample_keypoints
+
+    def counted(self, n, *args, **kwargs):
+        drawn.append(n)
+        return sample_keypoints(self, n, *args, **kwargs)
+
+    monkeypatch.setattr(PixelBank, "sample_keypoints", counted)
+    assert Trainer(ds, tmp_path / "run", config).train()["steps"] == 8
+    assert len(drawn) == 4 and all(n > 0 for n in drawn)   # steps 0-3 of 8
+    for bad in (0.0, 1.5):
+        with pytest.raises(ValueError, match="sparse_depth_until"):
+            TrainConfig(method="ngp", max_steps=1, sparse_depth_until=bad).validate()

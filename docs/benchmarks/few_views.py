@@ -3,7 +3,7 @@
 usage: python docs/benchmarks/few_views.py WORK [--scenes tabletop,workspace:0]
                                            [--views 2,3,5,10] [--seconds 60] [--weight 0.1]
                                            [--repeats 1] [--size 512] [--downscale 4]
-                                           [--robust C] [--no-guided-matching]
+                                           [--robust C] [--until F] [--no-guided-matching]
 
 Few-view work poses a scene from one side, as a robot's camera does from where it stands: for
 N training views, cameras on an arc of 60 degrees of azimuth around the scene's target (the
@@ -16,8 +16,9 @@ between them, at 30 and 40 degrees elevation, the same for every N. For each sce
    with the simulator's poses; images, depth and keypoints written at size / D px. The column "SfM alone"
    says whether ``nerfbot colmap`` without the poses registers the N views.
 2. ``nerfbot train --method ngp --max-seconds S --seed R``, with and without
-   ``--sparse-depth-weight W`` (and with ``--robust C``, also with it and
-   ``--sparse-depth-robust C``), for R = 0 .. repeats - 1.
+   ``--sparse-depth-weight W`` (with ``--robust C``, also with it and
+   ``--sparse-depth-robust C``; with ``--until F``, also with it, ``--sparse-depth-until F`` and
+   the robust weights if given), for R = 0 .. repeats - 1.
 3. ``nerfbot eval --data TESTSET --split test``: PSNR, SSIM, depth MAE on the 8 test views.
 
 Writes WORK/few_views.json (every run), WORK/few_views.png (medians over the repeats, PSNR and
@@ -102,6 +103,8 @@ def main() -> None:
     ap.add_argument("--downscale", type=int, default=4, help="fields train on size / N px")
     ap.add_argument("--robust", type=float, default=0.0, metavar="C",
                     help="also train with --sparse-depth-robust C (robust keypoint weights)")
+    ap.add_argument("--until", type=float, default=1.0, metavar="F",
+                    help="also train with --sparse-depth-until F (and --robust's weights)")
     ap.add_argument("--no-guided-matching", action="store_true",
                     help="nerfbot colmap --no-guided-matching (fewer keypoints)")
     args = ap.parse_args()
@@ -149,6 +152,10 @@ def main() -> None:
             if args.robust > 0:
                 variants.append(("robust", ["--sparse-depth-weight", args.weight,
                                             "--sparse-depth-robust", args.robust]))
+            if args.until < 1:
+                variants.append(("until", ["--sparse-depth-weight", args.weight,
+                                           "--sparse-depth-robust", args.robust,
+                                           "--sparse-depth-until", args.until]))
             for name, extra in variants:
                 if name != "rgb" and not row["keypoints"]:
                     continue
@@ -163,7 +170,7 @@ def main() -> None:
                                                    "test", "--json"]))
                     runs.append({k: ev.get(k) for k in (*METRICS, "steps")})
                 row[name] = {"runs": runs, "median": median_of(runs)}
-            for name in ("sparse_depth", "robust"):   # paired by seed
+            for name in ("sparse_depth", "robust", "until"):   # paired by seed
                 if name in row:
                     pairs = list(zip(row["rgb"]["runs"], row[name]["runs"]))
                     row[f"{name}_wins"] = {
@@ -199,11 +206,16 @@ def main() -> None:
                 print(f"|   robust (C = {args.robust}) | | | | {rb['psnr']:.2f} | "
                       f"{rb['ssim']:.3f} | {100 * rb['depth_mae_m']:.1f} | "
                       f"{rw['psnr']}/{args.repeats}, {rw['depth_mae_m']}/{args.repeats} |")
+            if "until" in r:
+                ut, uw = r["until"]["median"], r["until_wins"]
+                print(f"|   until {args.until} | | | | {ut['psnr']:.2f} | "
+                      f"{ut['ssim']:.3f} | {100 * ut['depth_mae_m']:.1f} | "
+                      f"{uw['psnr']}/{args.repeats}, {uw['depth_mae_m']}/{args.repeats} |")
 
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.5))
     for scene, rows in results.items():
         ns = sorted(rows)
-        for name, style in (("rgb", "o--"), ("sparse_depth", "s-"), ("robust", "^:")):
+        for name, style in (("rgb", "o--"), ("sparse_depth", "s-"), ("robust", "^:"), ("until", "v-.")):
             ok = [n for n in ns if name in rows[n]]
             axes[0].plot(ok, [rows[n][name]["median"]["psnr"] for n in ok], style,
                          label=f"{scene} {name.replace('_', ' ')}")

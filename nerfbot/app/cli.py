@@ -191,7 +191,8 @@ def cmd_capture(args) -> int:
 RUN_FLAGS = {"method": "method", "seed": "seed", "lr": "lr", "option": "options",
              "background": "background", "depth_weight": "depth_weight",
              "sparse_depth_weight": "sparse_depth_weight",
-             "sparse_depth_robust": "sparse_depth_robust", "labels": "labels",
+             "sparse_depth_robust": "sparse_depth_robust",
+             "sparse_depth_until": "sparse_depth_until", "labels": "labels",
              "label_clicks": "label_clicks", "label_weight": "label_weight",
              "dynamic_rays": "dynamic_rays", "dynamic_rays_debias": "dynamic_rays_debias",
              "error_rays": "error_rays", "error_rays_debias": "error_rays_debias",
@@ -253,11 +254,12 @@ def _follow_saved_config(args, run: Path, saved: dict) -> dict:
                   error_rays=train.get("error_rays", 0.0),
                   error_rays_debias=train.get("error_rays_debias", 1.0),
                   error_tile=train.get("error_tile", 8),
-                  sparse_depth_robust=train.get("sparse_depth_robust", 0.0))
+                  sparse_depth_robust=train.get("sparse_depth_robust", 0.0),
+                  sparse_depth_until=train.get("sparse_depth_until", 1.0))
     checked = set(RUN_FLAGS) if args.config is not None else \
-        {"lr", "depth_weight", "sparse_depth_weight", "sparse_depth_robust", "label_clicks",
-         "label_weight", "dynamic_rays", "dynamic_rays_debias", "error_rays",
-         "error_rays_debias", "error_tile", "eval_at"}
+        {"lr", "depth_weight", "sparse_depth_weight", "sparse_depth_robust",
+         "sparse_depth_until", "label_clicks", "label_weight", "dynamic_rays",
+         "dynamic_rays_debias", "error_rays", "error_rays_debias", "error_tile", "eval_at"}
     conflicts = []
     for dest in sorted(checked & given):
         mine, theirs = _comparable(dest, getattr(args, dest)), _comparable(dest, values[dest])
@@ -366,6 +368,7 @@ def _flag_train_config(args, method: str, options: dict, max_seconds, background
                 depth_weight=args.depth_weight,
                 sparse_depth_weight=args.sparse_depth_weight,
                 sparse_depth_robust=args.sparse_depth_robust,
+                sparse_depth_until=args.sparse_depth_until,
                 labels=args.labels or args.label_clicks is not None,
                 label_weight=args.label_weight, label_clicks=args.label_clicks,
                 dynamic_rays=args.dynamic_rays, dynamic_rays_debias=args.dynamic_rays_debias,
@@ -1276,6 +1279,9 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
                    help="robust keypoint weights: from a quarter of the budget on, a "
                         "keypoint whose rendered depth is r from its own weighs "
                         "1 / (1 + (r / (C sigma))^2) (default 0: every keypoint in full)")
+    p.add_argument("--sparse-depth-until", type=float, default=1.0, metavar="F",
+                   help="keypoints leave the batch after a fraction F of the budget, so the "
+                        "rest trains colour on every pixel (default 1: to the end)")
     p.add_argument("--labels", action="store_true",
                    help="train a semantic label head (Semantic-NeRF) on the capture's "
                         "segmentation; classes: background, each object of the manifest, "

@@ -54,6 +54,10 @@ class TrainConfig:
     expected distance to the keypoint's and sigma its width (a wrong match, which the images'
     colours contradict, stops pulling the surface toward it); 0: every keypoint at full
     weight, as DS-NeRF trains."""
+    sparse_depth_until: float = 1.0
+    """Fraction of the budget after which keypoints leave the batch (0 < f <= 1): the depth
+    prior shapes the geometry early, and the last 1 - f of the budget trains colour on every
+    pixel of the batch. 1 = to the end, as DS-NeRF trains."""
     sparse_depth_rays: int = 256
     """Keypoint pixels per step for the sparse depth loss (at most a quarter of the batch's
     pixels); they replace as many random pixels of the batch, and only their depth is trained."""
@@ -99,6 +103,13 @@ class TrainConfig:
     progress: bool = True
     """Show a progress bar."""
 
+    def keypoint_pixels(self, progress: float) -> int:
+        """Keypoint pixels a step at ``progress`` (0-1) of the budget asks for: 0 without
+        sparse depth supervision and from ``sparse_depth_until`` on."""
+        if self.sparse_depth_weight > 0 and progress < self.sparse_depth_until:
+            return self.sparse_depth_rays
+        return 0
+
     def validate(self) -> None:
         recipe = get_method(self.method).baked_from
         if recipe is not None:
@@ -122,6 +133,9 @@ class TrainConfig:
         if not 0.0 <= self.sparse_depth_robust < math.inf:
             raise ValueError(f"sparse_depth_robust must be >= 0 and finite, got "
                              f"{self.sparse_depth_robust}")
+        if not 0.0 < self.sparse_depth_until <= 1.0:
+            raise ValueError(f"sparse_depth_until must be in (0, 1], got "
+                             f"{self.sparse_depth_until}")
         if isinstance(self.sparse_depth_rays, bool) or not isinstance(self.sparse_depth_rays, int) \
                 or self.sparse_depth_rays < 1:
             raise ValueError(f"sparse_depth_rays must be an integer >= 1, got "

@@ -432,10 +432,9 @@ class Trainer:
                 for group in self.optimizer.param_groups:
                     group["lr"] = lr * group["lr_scale"]
                 self.n_rays = self.model.rays_for_next_batch(self.last_samples, self.n_rays)
-                keypoints = c.sparse_depth_rays if c.sparse_depth_weight > 0 else 0
                 loss, out, supersample = batch_loss(
                     self.model, self.bank, self.n_rays, self.generator, progress,
-                    keypoints, c.sparse_depth_weight,
+                    c.keypoint_pixels(progress), c.sparse_depth_weight,
                     c.label_weight if c.labels else 0.0, c.label_rays, c.sparse_depth_robust)
                 if c.depth_weight > 0:
                     loss = loss + c.depth_weight * self._depth_loss(out, supersample)
