@@ -50,6 +50,8 @@ CONDITIONING = {"tnerf": Conditioning("time", ("time",), ((0.0, 1.0),)),
 #: CONDITIONED_NGP_RENDERER says why they are kept).
 CONDITIONED_RENDERER_DIFFERENCES = {"supersample", "supersample_from", "density_noise",
                                     "samples_per_batch", "carving_weight"}
+#: ...and the field defaults in which they differ (ngp's NGP_FIELD: the start's density).
+CONDITIONED_FIELD_DIFFERENCES = {"initial_transmittance", "initial_transmittance_path"}
 
 
 def _all_configs(name: str) -> tuple:
@@ -108,10 +110,11 @@ def test_the_command_line_table_lists_the_registry():
 
 
 @pytest.mark.parametrize("name", ["tnerf", "dnerf", "articulated"])
-def test_the_conditioned_ngp_family_differs_from_ngp_only_in_its_renderer_defaults(name):
+def test_the_conditioned_ngp_family_differs_from_ngp_only_in_its_renderer_and_start(name):
     ngp, own = method_defaults("ngp"), method_defaults(name)
     assert set(ngp) <= set(own)
-    assert {k for k in ngp if ngp[k] != own[k]} == CONDITIONED_RENDERER_DIFFERENCES
+    assert {k for k in ngp if ngp[k] != own[k]} == \
+        CONDITIONED_RENDERER_DIFFERENCES | CONDITIONED_FIELD_DIFFERENCES
     assert METHODS[name].build.__qualname__ == METHODS["tnerf"].build.__qualname__  # one factory
 
 

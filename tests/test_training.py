@@ -8,8 +8,10 @@ import torch
 
 from nerfbot.data import load_dataset
 from nerfbot.eval.evaluation import evaluate
+from nerfbot.fields.ngp import NGPField, NGPFieldConfig
 from nerfbot.models.occupancy import scale_gradient
 from nerfbot.ops.metrics import psnr
+from nerfbot.ops.sampling import ray_aabb_reference
 from nerfbot.train.checkpoints import CHECKPOINT
 from nerfbot.train.runs import load_model
 from nerfbot.train.trainer import TrainConfig, Trainer
@@ -451,3 +453,60 @@ def test_near_gradient_distance_damps_only_samples_near_the_camera(tiny_capture,
     assert 0.0 < ratio < 0.01, ratio
     with pytest.raises(ValueError, match="near_gradient_distance"):
         model("bad", near_gradient_distance=-1.0)
+
+
+def test_ngp_starts_with_its_transmittance_along_the_training_rays(tiny_capture, tmp_path):
+    """ngp's start leaves ``initial_transmittance`` along the training rays' median path through
+    the bounds, not along the cube's diagonal: its densities are the diagonal start's times
+    diagonal / path, the path is the median over the training pixels' centre rays, a checkpoint
+    keeps the start, and a field set along the diagonal is left alone; with the contraction the
+    shift is from the contracted cube's diagonal."""
+    ds = load_dataset(tiny_capture[0])
+
+    def trainer(name, **options):
+        return Trainer(ds, tmp_path / name, TrainConfig(method="ngp", max_steps=1, seed=0,
+                                                        progress=False, options=options))
+
+    rays, diagonal = trainer("rays"), trainer("diagonal", initial_transmittance_path="diagonal")
+    bank = rays.bank
+    all_rays = bank.centre_rays(torch.arange(len(bank)))  # 16 x 32 x 32 pixels: all of them
+    t_near, t_far, hit = ray_aabb_reference(all_rays.origins.double(),
+                                            all_rays.directions.double(),
+                                            torch.as_tensor(ds.aabb, dtype=torch.float64))
+    path = bank.median_ray_path(ds.aabb)
+    assert path == pytest.approx(float((t_far - t_near)[hit].median()), rel=1e-5)
+    extent = float(np.max(np.asarray(ds.aabb)[1] - np.asarray(ds.aabb)[0]))
+    assert 0.05 * extent < path < np.sqrt(3.0) * extent
+    assert bank.median_ray_path([[100.0] * 3, [101.0] * 3]) is None
+
+    x = torch.as_tensor(ds.aabb[0], dtype=torch.float32) + torch.rand(
+        512, 3, generator=torch.Generator().manual_seed(0)) * torch.as_tensor(
+        np.asarray(ds.aabb[1]) - np.asarray(ds.aabb[0]), dtype=torch.float32)
+    with torch.no_grad():
+        sigma_rays = rays.model.field.density(x)[0]
+        sigma_diagonal = diagonal.model.field.density(x)[0]
+    torch.testing.assert_close(sigma_rays / sigma_diagonal,
+                               torch.full_like(sigma_rays, np.sqrt(3.0) * extent / path),
+                               rtol=1e-4, atol=0.0)
+    rays.model.init_ray_length(path)  # again: the start does not move
+    with torch.no_grad():
+        torch.testing.assert_close(rays.model.field.density(x)[0], sigma_rays)
+    rays.train()
+    with torch.no_grad():
+        trained = rays.model.field.density(x)[0]
+        reloaded = load_model(tmp_path / "rays")[0].field.density(x)[0]
+    torch.testing.assert_close(reloaded, trained)
+
+    for config, contract, shift in (
+            (NGPFieldConfig(), False, 0.0),
+            (NGPFieldConfig(initial_transmittance_path="rays"), True,
+             np.log(2.0 * np.sqrt(3.0) * extent / path))):  # the contracted cube: twice the edge
+        field = NGPField(ds.aabb, config, contract=contract)
+        before = field.density_mlp[-1].bias.detach().clone()
+        field.init_ray_length(path)
+        assert float(field.density_mlp[-1].bias[0] - before[0]) == pytest.approx(shift, abs=1e-5)
+        assert torch.equal(field.density_mlp[-1].bias[1:], before[1:])
+    with pytest.raises(ValueError, match="initial_transmittance_path"):
+        NGPField(ds.aabb, NGPFieldConfig(initial_transmittance_path="cube"))
+    with pytest.raises(ValueError, match="ray length"):
+        rays.model.field.init_ray_length(0.0)

@@ -15,6 +15,7 @@ from nerfbot.data.dataset import Dataset
 from nerfbot.data.error_map import ErrorMap
 from nerfbot.data.errors import DatasetError
 from nerfbot.ops.cameras import Rays, pixel_rays
+from nerfbot.ops.sampling import ray_aabb
 
 
 log = logging.getLogger(__name__)
@@ -227,6 +228,20 @@ class PixelBank:
         pixels = pixels.to(self.device)
         self.labels[pixels] = classes.to(self.device, self.labels.dtype)
         self.clicks = torch.cat([self.clicks, pixels])
+
+    def median_ray_path(self, aabb, rays: int = 1 << 14) -> Optional[float]:
+        """Median length, metres, of the training rays' paths through the box ``aabb`` (2, 3):
+        over the centre rays of ``rays`` pixels spread evenly through the bank (no random
+        draws), those that meet the box; None when none does."""
+        count = len(self) if self.valid is None else len(self.valid)
+        rank = torch.linspace(0, count - 1, min(rays, count), device=self.device).long()
+        pixels = rank if self.valid is None else self.valid.pixel(rank)
+        r = self.centre_rays(pixels)
+        box = torch.as_tensor(aabb, dtype=r.origins.dtype, device=r.origins.device)
+        t_near, t_far, hit = ray_aabb(r.origins, r.directions, box)
+        if not bool(hit.any()):
+            return None
+        return float((t_far - t_near)[hit].median())
 
     def centre_rays(self, pixels: torch.Tensor) -> Rays:
         """Rays (n,) through the centres of pixels ``pixels`` (n,) (indices into the bank)."""

@@ -119,6 +119,11 @@ class Field(nn.Module, metaclass=abc.ABCMeta):
         with torch.no_grad():
             head.bias.copy_(torch.logit(rgb.clamp(0.02, 0.98)).to(head.bias))
 
+    def init_ray_length(self, length_m: float) -> None:
+        """Before training: the training rays cross the scene bounds over a median of
+        ``length_m`` metres (:meth:`~nerfbot.data.pixels.PixelBank.median_ray_path`). Fields
+        whose initial density is set along that path adjust it here. Default: nothing."""
+
     def color_head(self) -> nn.Linear:
         """The last linear layer of the colour branch (its output goes through a sigmoid)."""
         raise TypeError(f"{type(self).__name__} has no colour head; override init_mean_color")

@@ -31,9 +31,19 @@ class NGPFieldConfig(HashGridConfig):
     explain away wrong geometry (the shape-radiance ambiguity) and slows short budgets down.
     0: every band from the start."""
     initial_transmittance: float = 0.2
-    """Transmittance of a ray crossing the whole cube at initialisation. Sets a density bias so
-    the scene starts nearly empty and a learned background explains what it can (sky) before
-    density grows; with a fixed bias, a large box starts as fog that learns to fake the sky."""
+    """Transmittance at initialisation along ``initial_transmittance_path``. Sets a density
+    bias so the scene starts nearly empty and a learned background explains what it can (sky)
+    before density grows; with a fixed bias, a large box starts as fog that learns to fake the
+    sky."""
+    initial_transmittance_path: str = "diagonal"
+    """What ``initial_transmittance`` is measured along: "diagonal", the diagonal of the cube
+    enclosing the bounds; "rays", the training rays' median path through the bounds (measured
+    from the data before the first step, :meth:`NGPField.init_ray_length`). Bounds shaped as a
+    slab (a bench top or a tray seen from above) are crossed over a few percent of their cube's
+    diagonal, so a start set along the diagonal leaves every ray about 90 % transparent, and
+    the learned background fits the images before any surface forms (``bins:2``: about 19.5 dB
+    for 300 steps). With the contraction the path is the rays' path through the bounds
+    themselves, where density is per metre."""
     mlp_lr_scale: float = 1.0
     """Learning rate of the MLPs relative to the hash table's."""
     footprint_scale: float = 0.0
@@ -80,8 +90,13 @@ class NGPField(Field):
 
         if not 0.0 < cfg.initial_transmittance < 1.0:
             raise ValueError(f"initial_transmittance must be in (0, 1), got {cfg.initial_transmittance}")
+        if cfg.initial_transmittance_path not in ("diagonal", "rays"):
+            raise ValueError(f"initial_transmittance_path must be 'diagonal' or 'rays', got "
+                             f"{cfg.initial_transmittance_path!r}")
         diagonal = math.sqrt(3.0) * self.normalize.extent
         self.density_bias = math.log(-math.log(cfg.initial_transmittance) / diagonal)
+        #: log(diagonal / path) added to the density MLP's output bias by init_ray_length
+        self._path_shift = 0.0
         if cfg.footprint_scale < 0:
             raise ValueError(f"footprint_scale must be >= 0, got {cfg.footprint_scale}")
         if cfg.mlp_precision not in ("bf16", "fp32"):
@@ -89,6 +104,21 @@ class NGPField(Field):
 
     def color_head(self):
         return self.color_mlp[-1]
+
+    def init_ray_length(self, length_m: float) -> None:
+        """With ``initial_transmittance_path="rays"``: start with ``initial_transmittance``
+        along ``length_m`` metres instead of the cube's diagonal (the contracted cube's, with
+        the contraction), by shifting the density MLP's output bias by log(diagonal /
+        length_m); the shift is a parameter, so a checkpoint keeps it. Calling again replaces
+        the earlier shift."""
+        if self.config.initial_transmittance_path != "rays":
+            return
+        if not (math.isfinite(length_m) and length_m > 0):
+            raise ValueError(f"ray length must be a positive number of metres, got {length_m}")
+        shift = math.log(math.sqrt(3.0) * self.normalize.extent / length_m)
+        with torch.no_grad():
+            self.density_mlp[-1].bias[0] += shift - self._path_shift
+        self._path_shift = shift
 
     def param_groups(self) -> list[dict]:
         """The hash table at the method's learning rate, the MLPs at ``mlp_lr_scale`` of it.

@@ -153,6 +153,15 @@ class Model(nn.Module, metaclass=abc.ABCMeta):
             if m is not self and hasattr(m, "init_mean_color"):
                 m.init_mean_color(rgb)
 
+    def init_ray_length(self, length_m: Optional[float]) -> None:
+        """Tell every field how far the training rays cross the bounds (median, metres;
+        :meth:`~nerfbot.fields.base.Field.init_ray_length`); None (no ray meets them): nothing."""
+        if length_m is None:
+            return
+        for m in self.modules():
+            if m is not self and hasattr(m, "init_ray_length"):
+                m.init_ray_length(length_m)
+
     def param_groups(self) -> list[dict]:
         """Optimiser groups (``params``, ``lr_scale``): the fields' own groups, then every other
         parameter (background, second field, ...) at scale 1."""

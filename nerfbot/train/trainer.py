@@ -204,6 +204,7 @@ class Trainer:
             train = sorted(train, key=lambda i: float(conditions[i, 0]))
         self.bank = PixelBank(dataset, train, self.device, conditions)
         self.model.init_mean_color(self.bank.mean_color())
+        self.model.init_ray_length(self.bank.median_ray_path(self.model.aabb))
         if conditioning.kind == "time" and config.dynamic_rays > 0:
             self._load_importance()
         if config.error_rays > 0:
@@ -354,6 +355,7 @@ class Trainer:
         self.model = build_from_spec(spec, self.device)
         self.model.use_run_loader(load_model)
         self.model.init_mean_color(self.bank.mean_color())
+        self.model.init_ray_length(self.bank.median_ray_path(self.model.aabb))
         aabb = self.model.aabb
         self.depth_scale = float((aabb[1] - aabb[0]).max()) * math.sqrt(3.0)
 
