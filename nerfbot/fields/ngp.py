@@ -43,7 +43,8 @@ class NGPFieldConfig(HashGridConfig):
     diagonal, so a start set along the diagonal leaves every ray about 90 % transparent, and
     the learned background fits the images before any surface forms (``bins:2``: about 19.5 dB
     for 300 steps). With the contraction the path is the rays' path through the bounds
-    themselves, where density is per metre."""
+    themselves, where density is per metre. A field trained outside the trainer, which never
+    measures the rays, starts along the diagonal."""
     mlp_lr_scale: float = 1.0
     """Learning rate of the MLPs relative to the hash table's."""
     footprint_scale: float = 0.0
