@@ -167,9 +167,44 @@ def test_field_outputs_and_mean_colour_start(shading):
     assert trans == pytest.approx(0.2, abs=0.05)
 
 
+def test_start_along_the_training_rays(tiny_capture, tmp_path):
+    """With ``initial_transmittance_path="rays"`` a ray of the training rays' median path keeps
+    ``initial_transmittance``; the trainer measures that path; calling again does not move the
+    start, and a field set along the diagonal is left alone."""
+    g = torch.Generator().manual_seed(1)
+    lo, hi = torch.tensor(AABB[0]), torch.tensor(AABB[1])
+    x = lo + torch.rand(4000, 3, generator=g) * (hi - lo)
+
+    def transmittance(field, path_m):
+        with torch.no_grad():
+            return math.exp(-float(field.density(x)[0].mean()) * path_m)
+
+    rays = TensoRFField(AABB, TensoRFFieldConfig(init_res=8, initial_transmittance=0.6,
+                                                 initial_transmittance_path="rays"))
+    diagonal = TensoRFField(AABB, TensoRFFieldConfig(init_res=8, initial_transmittance=0.6))
+    for field in (rays, diagonal):
+        field.init_ray_length(0.1)
+        field.init_ray_length(0.1)
+    assert transmittance(rays, 0.1) == pytest.approx(0.6, abs=0.05)
+    assert transmittance(diagonal, math.sqrt(3.0) * 1.2) == pytest.approx(0.6, abs=0.05)
+    assert transmittance(diagonal, 0.1) > 0.95
+    with pytest.raises(ValueError, match="ray length"):
+        rays.init_ray_length(-1.0)
+
+    ds = load_dataset(tiny_capture[0])
+    trainer = Trainer(ds, tmp_path / "run", TrainConfig(
+        method="tensorf", max_steps=1, seed=0, progress=False,
+        options={"init_res": 8, "initial_transmittance": 0.6, "initial_transmittance_path": "rays"}))
+    path = trainer.bank.median_ray_path(ds.aabb)
+    lo, hi = (torch.as_tensor(b, dtype=torch.float32) for b in ds.aabb)
+    x = lo + torch.rand(4000, 3, generator=g) * (hi - lo)
+    assert transmittance(trainer.model.field, path) == pytest.approx(0.6, abs=0.05)
+
+
 def test_bad_options_raise():
     for bad in ({"shading": "phong"}, {"upsample_at": [0.5, 0.2]}, {"init_res": 300},
-                {"backend": "cuda"}, {"initial_transmittance": 1.0}, {"l1_weight": -1.0}):
+                {"backend": "cuda"}, {"initial_transmittance": 1.0}, {"l1_weight": -1.0},
+                {"initial_transmittance_path": "cube"}):
         with pytest.raises(ValueError):
             build_model("tensorf", AABB, options=bad)
     with pytest.raises(ValueError):

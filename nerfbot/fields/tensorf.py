@@ -209,10 +209,16 @@ class TensoRFFieldConfig:
     """sigma = softplus(f + density_shift) * scale: components at zero (where the L1 term pulls
     them) mean empty space (the paper's -10)."""
     initial_transmittance: float = 0.2
-    """Transmittance of a ray crossing the whole cube at initialisation: the density components
-    start at a constant offset (plus noise) that makes f this dense. From f = 0 (the paper's
-    zero-mean start) the softplus passes almost no gradient (4.5e-5 of it), and with a learned
-    background explaining the first batches the density never grows."""
+    """Transmittance at initialisation along ``initial_transmittance_path``: the density
+    components start at a constant offset (plus noise) that makes f this dense. From f = 0 (the
+    paper's zero-mean start) the softplus passes almost no gradient (4.5e-5 of it), and with a
+    learned background explaining the first batches the density never grows."""
+    initial_transmittance_path: str = "diagonal"
+    """What ``initial_transmittance`` is measured along: "diagonal", the diagonal of the cube
+    enclosing the bounds; "rays", the training rays' median path through the bounds (measured
+    from the data before the first step, :meth:`TensoRFField.init_ray_length`), so bounds shaped
+    as a slab do not start nearly transparent. A field trained outside the trainer starts along
+    the diagonal."""
     density_scale: float = 75.0
     """sigma (1/m) = softplus(...) * density_scale / (longest edge of the bounds in m). The
     paper's 25 per unit on its 3-unit Blender box is 75 per box length."""
@@ -258,10 +264,11 @@ class TensoRFField(Field):
         gen = torch.Generator().manual_seed(seed)
         start = self.vertices_for(cfg.init_res)
         self.density_vm = VMGrid(start, cfg.density_components, cfg.init_scale, gen, cfg.backend)
+        #: the constant in every density plane and line entry (:meth:`_initial_offset`)
+        self._start_offset = self._initial_offset(self._cube_diagonal())
         with torch.no_grad():
-            offset = self._initial_offset()
             for t in self.density_vm.parameters():
-                t.add_(offset)
+                t.add_(self._start_offset)
         self.app_vm = VMGrid(start, cfg.app_components, cfg.init_scale, gen, cfg.backend)
         if cfg.shading == "mlp":
             self.basis = nn.Linear(3 * cfg.app_components, cfg.app_dim, bias=False)
@@ -297,17 +304,38 @@ class TensoRFField(Field):
         if not 0.0 < cfg.initial_transmittance < 1.0:
             raise ValueError(f"initial_transmittance must be in (0, 1), got "
                              f"{cfg.initial_transmittance}")
+        if cfg.initial_transmittance_path not in ("diagonal", "rays"):
+            raise ValueError(f"initial_transmittance_path must be 'diagonal' or 'rays', got "
+                             f"{cfg.initial_transmittance_path!r}")
         if cfg.backend not in ("numba", "torch"):
             raise ValueError(f"backend must be 'numba' or 'torch', got {cfg.backend!r}")
 
-    def _initial_offset(self) -> float:
+    def _cube_diagonal(self) -> float:
+        """Diagonal (m) of the cube enclosing the bounds."""
+        return math.sqrt(3.0) * float((self.aabb[1] - self.aabb[0]).max())
+
+    def _initial_offset(self, path_m: float) -> float:
         """Constant a added to every density plane and line entry so that f = 3 R a^2 gives a
-        density of -ln(initial_transmittance) / (diagonal of the enclosing cube)."""
+        density of -ln(initial_transmittance) / path_m (1/m)."""
         cfg = self.config
-        diagonal = math.sqrt(3.0) * float((self.aabb[1] - self.aabb[0]).max())
-        sigma0 = -math.log(cfg.initial_transmittance) / diagonal
+        sigma0 = -math.log(cfg.initial_transmittance) / path_m
         f0 = math.log(math.expm1(sigma0 / self.sigma_scale)) - cfg.density_shift
         return math.sqrt(max(f0, 0.0) / (3 * cfg.density_components))
+
+    def init_ray_length(self, length_m: float) -> None:
+        """With ``initial_transmittance_path="rays"``: start with ``initial_transmittance``
+        along ``length_m`` metres instead of the cube's diagonal, by moving the constant in
+        every density plane and line entry (the noise around it stays); a checkpoint keeps it.
+        Calling again replaces the earlier start."""
+        if self.config.initial_transmittance_path != "rays":
+            return
+        if not (math.isfinite(length_m) and length_m > 0):
+            raise ValueError(f"ray length must be a positive number of metres, got {length_m}")
+        offset = self._initial_offset(length_m)
+        with torch.no_grad():
+            for t in self.density_vm.parameters():
+                t.add_(offset - self._start_offset)
+        self._start_offset = offset
 
     # -- resolution schedule -----------------------------------------------------------------
     def vertices_for(self, cells: int) -> tuple[int, int, int]:
