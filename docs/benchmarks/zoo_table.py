@@ -6,8 +6,7 @@ usage: python docs/benchmarks/zoo_table.py BENCH_DIR
   e.g. nerfbot bench --data tabletop,workspace:4 --methods ngp,plenoxels,tensorf,auto \\
            --budgets 60,180 --no-chamfer --out B/zoo && python docs/benchmarks/zoo_table.py B/zoo
 
-Depth MAE is printed in mm below 0.1 m, in m above. `auto`'s row names what it chose (its runs'
-``auto.json``: method and options).
+Depth MAE is printed in mm below 0.1 m, in m above. `auto`'s rows name what it chose.
 """
 import argparse
 import json
@@ -24,18 +23,15 @@ def _num(x, fmt):
     return "-" if x is None else format(x, fmt)
 
 
-def auto_choices(bench: Path) -> dict:
-    """scene -> "method, option value, ..." of the `auto` runs (from their ``auto.json``)."""
-    out = {}
-    for point in sorted(bench.glob("runs/*/point.json")):
-        p = json.loads(point.read_text())
-        choice = point.parent / "auto.json"
-        if p.get("method") != "auto" or not choice.exists():
-            continue
-        c = json.loads(choice.read_text())
-        opts = ", ".join(f"{k} {v}" for k, v in sorted(c.get("options", {}).items()))
-        out[p["scene"]] = c["method"] + (f", {opts}" if opts else "")
-    return out
+def label(row: dict) -> str:
+    """A row's name: the method and its swept options; `auto` with what it chose for the scene
+    (the bench names those rows ``auto:METHOD`` with the chosen options as JSON)."""
+    method, options = row["method"], row.get("options") or ""
+    if method.startswith("auto:"):
+        chosen = json.loads(options) if options.startswith("{") else {}
+        parts = [method.split(":", 1)[1]] + [f"{k} {v}" for k, v in sorted(chosen.items())]
+        return f"`auto` ({', '.join(parts)})"
+    return method + (f" {options}" if options else "")
 
 
 def main() -> None:
@@ -47,12 +43,11 @@ def main() -> None:
     budgets = sorted({r["budget"] for r in rows})
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
     for r in rows:  # a swept option makes its own row
-        r["label"] = r["method"] + (f" {r['options']}" if r.get("options") else "")
+        r["label"] = label(r)
     methods = list(dict.fromkeys(r["label"] for r in rows))
     cell = {(r["scene"], r["label"], r["budget"]): r for r in rows}
     best = {(s, b): max((cell[s, m, b]["psnr"] for m in methods if (s, m, b) in cell), default=None)
             for s in scenes for b in budgets}
-    chosen = auto_choices(args.bench)
 
     head = "| scene | method | " + " | ".join(
         f"{b:g} s: PSNR / non-sky / objects | depth MAE | render ms | steps/s" for b in budgets) + " |"
@@ -60,7 +55,8 @@ def main() -> None:
     print("|" + "---|" * (2 + 4 * len(budgets)))
     for s in scenes:
         for m in methods:
-            name = f"`auto` ({chosen[s]})" if m == "auto" and s in chosen else m
+            if not any((s, m, b) in cell for b in budgets):  # auto's choice for another scene
+                continue
             cells = []
             for b in budgets:
                 r = cell.get((s, m, b))
@@ -74,17 +70,19 @@ def main() -> None:
                              f"{_num(r['psnr_objects'], '.2f')} | {_depth(r['depth_mae_m'])} | "
                              f"{_num(r['render_ms_per_image'], '.0f')} | "
                              f"{_num(r['steps_per_second'], '.1f')}")
-            print(f"| `{s}` | {name} | " + " | ".join(cells) + " |")
-    if "auto" in methods:
+            print(f"| `{s}` | {m} | " + " | ".join(cells) + " |")
+    if any(m.startswith("`auto`") for m in methods):
         print()
         for b in budgets:
             gaps = []
             for s in scenes:
-                r = cell.get((s, "auto", b))
+                r = next((cell[s, m, b] for m in methods
+                          if m.startswith("`auto`") and (s, m, b) in cell), None)
                 if r is not None and best[s, b] is not None:
                     leader = max((m for m in methods if (s, m, b) in cell),
                                  key=lambda m: cell[s, m, b]["psnr"])
-                    gaps.append(f"{s} {r['psnr'] - best[s, b]:+.2f} ({leader})")
+                    leader = "auto" if leader.startswith("`auto`") else leader
+                    gaps.append(f"{s} {r['psnr'] - best[s, b]:+.2f} (best: {leader})")
             print(f"- auto - best at {b:g} s: " + ", ".join(gaps))
 
 

@@ -1,4 +1,5 @@
-"""The ``nerfbot`` command: capture, colmap, train, eval, render, export, demo, bench.
+"""The ``nerfbot`` command: capture, colmap, train, eval, label, bake, estimate-joints, render,
+view, export, demo, bench, pixelnerf.
 
 Heavy imports happen inside each command so ``nerfbot --help`` stays instant. ``sims`` is
 imported before anything that imports ``mujoco``, so headless machines get ``MUJOCO_GL=egl``.
@@ -1634,7 +1635,8 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
                         "same name wins unless the name has the builtin: prefix)")
     p.add_argument("--methods", default=["ngp"], type=_str_list, metavar="M1,M2,...",
                    help="methods to compare (default ngp; available: "
-                        + ", ".join(sorted(DESCRIPTIONS)) + ")")
+                        + ", ".join(sorted(DESCRIPTIONS)) + ", and auto: what --method auto "
+                        "picks for each scene)")
     p.add_argument("--budgets", required=True, type=_float_list, metavar="B1,B2,...",
                    help="training budgets: seconds of the training loop (or steps, see "
                         "--budget-kind)")
