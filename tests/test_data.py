@@ -401,11 +401,57 @@ def test_camera_bounds_property(seed, n, radius, fov):
     f = 0.5 * 32 / math.tan(math.radians(fov) / 2)
     box, rule = estimate_bounds_with_rule(poses, np.tile([f, f, 16, 12], (n, 1)),
                                           np.tile([32, 24], (n, 1)))
-    assume(rule == "axes")
-    np.testing.assert_allclose(box.mean(axis=0), target, atol=1e-6 * radius + 1e-9)
+    assume(rule in ("axes", "footprint"))
     assert np.all(box[1] > box[0])
+    if rule == "footprint":      # cameras on one side: the cube grown by the ground they see
+        assert np.all(box[0] < target) and np.all(target < box[1])
+        reach = float(np.median(np.linalg.norm(eyes - target, axis=1)))
+        assert np.all(box[0] >= target - reach * (1 + 1e-9))
+        assert np.all(box[1] <= target + reach * (1 + 1e-9))
+        return
+    np.testing.assert_allclose(box.mean(axis=0), target, atol=1e-6 * radius + 1e-9)
     for e in eyes:
         assert np.any(e < box[0]) or np.any(e > box[1])
+
+
+def test_camera_bounds_hold_the_ground_a_hemisphere_sees():
+    """Cameras on a hemisphere over a table see the table beyond the cube their axes meet in:
+    the box holds every point of the table's plane that a quarter of the cameras see, no
+    farther than the cameras stand, and keeps the cube's height."""
+    from nerfbot.data.bounds import GROUND_COVERAGE
+
+    target = np.array([0.1, -0.2, 0.75])
+    n, dist = 40, 0.8
+    elevations = np.radians([30.0, 43.0, 57.0, 70.0])
+    eyes = [target + dist * np.array([math.cos(elevations[k % 4]) * math.cos(2 * math.pi * k / n),
+                                      math.cos(elevations[k % 4]) * math.sin(2 * math.pi * k / n),
+                                      math.sin(elevations[k % 4])]) for k in range(n)]
+    poses = np.stack([look_at(e, target) for e in eyes])
+    f = 0.5 * 32 / math.tan(math.radians(40) / 2)
+    intr, sizes = np.tile([f, f, 16, 12], (n, 1)), np.tile([32, 24], (n, 1))
+    box, rule = estimate_bounds_with_rule(poses, intr, sizes)
+    assert rule == "footprint"
+    half = 1.1 * dist * math.tan(math.radians(40) / 2)       # the axes' cube (fov: the width)
+    np.testing.assert_allclose(box[:, 2], [target[2] - half, target[2] + half], atol=1e-9)
+    assert np.all(box[1, :2] - box[0, :2] > 2.2 * half)      # the ground: wider than the cube
+    assert np.all(np.abs(box[:, :2] - target[:2]) <= dist + 1e-9)
+
+    def coverage(x):
+        w2c = np.linalg.inv(poses)
+        c = np.einsum("nij,j->ni", w2c[:, :3, :3], x) + w2c[:, :3, 3]
+        z = -c[:, 2]
+        u, v = c[:, 0] / z * f + 16, -c[:, 1] / z * f + 12
+        return float(np.mean((z > 0) & (u >= 0) & (u <= 32) & (v >= 0) & (v <= 24)))
+
+    rng = np.random.default_rng(1)
+    inside = 0
+    for _ in range(300):
+        r, a = rng.uniform(0, dist), rng.uniform(0, 2 * math.pi)
+        x = target + np.array([r * math.cos(a), r * math.sin(a), 0.0])
+        if coverage(x) >= GROUND_COVERAGE + 0.03:   # clear of the probe grid's spacing
+            inside += 1
+            assert np.all(box[0] <= x) and np.all(x <= box[1]), (x, box)
+    assert inside > 50
 
 
 def test_manifest_bounds_padded_and_aabb_override(tmp_path):

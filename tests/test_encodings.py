@@ -370,6 +370,47 @@ def test_ngp_sh_warmup_starts_view_independent_and_trains_each_band_once_open():
         NGPField(aabb, NGPFieldConfig(sh_warmup=1.0))
 
 
+def test_level_warmup_fades_hash_levels_in_from_coarse_to_fine():
+    """``level_warmup``: the ``first`` coarsest levels at full weight from the start, the
+    finer ones opening one after another, only ever opening, and nothing scaled afterwards."""
+    from nerfbot.fields.ngp import hash_level_weights
+
+    assert hash_level_weights(16, 4, 0.0, 0.0) is None
+    assert hash_level_weights(16, 16, 0.3, 0.0) is None
+    assert hash_level_weights(16, 4, 0.3, 0.3) is None and hash_level_weights(16, 4, 0.3, 0.9) is None
+    start = hash_level_weights(16, 4, 0.3, 0.0)
+    torch.testing.assert_close(start, (torch.arange(16) < 4).float())
+    half = hash_level_weights(16, 4, 0.3, 0.15)  # a = 4 + 12 / 2 = 10: levels 0-9 open
+    torch.testing.assert_close(half, (torch.arange(16) < 10).float())
+    ramp = hash_level_weights(16, 4, 0.3, 0.0125)  # a = 4.5: level 4 half-way open
+    assert float(ramp[4]) == pytest.approx(0.5) and float(ramp[5]) == 0.0
+    ws = torch.stack([hash_level_weights(16, 4, 0.3, p) for p in np.linspace(0, 0.299, 60)])
+    assert bool((ws[1:] >= ws[:-1]).all())
+
+
+def test_ngp_level_warmup_leaves_fine_levels_out_of_the_field_until_they_open():
+    from nerfbot.fields.ngp import NGPField, NGPFieldConfig
+
+    aabb = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    cfg = NGPFieldConfig(level_warmup=0.5, level_warmup_first=2, backend="torch", n_levels=6,
+                         n_features=2, log2_hashmap_size=10)
+    field = NGPField(aabb, cfg, seed=0)
+    x = torch.rand(64, 3, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    table_rows = field.encoding.offsets.long()
+    for progress, open_levels in ((0.0, 2), (0.25, 4), (0.6, 6)):
+        field.zero_grad()
+        field.before_step(0, progress)
+        field.density(x)[0].sum().backward()
+        grad = field.encoding.table.grad
+        touched = [bool(grad[table_rows[k]:table_rows[k + 1]].abs().sum() > 0) for k in range(6)]
+        assert touched == [k < open_levels for k in range(6)], progress
+    for bad, match in (({"level_warmup": 1.0}, "level_warmup"),
+                       ({"level_warmup": 0.3, "level_warmup_first": 0}, "level_warmup_first"),
+                       ({"level_warmup": 0.3, "level_warmup_first": 17}, "level_warmup_first")):
+        with pytest.raises(ValueError, match=match):
+            NGPField(aabb, NGPFieldConfig(**bad))
+
+
 def test_bf16_mlp_pads_rows_and_matches_float32():
     """run_mlp in bf16: any row count, float32 output of that many rows, values and weight
     gradients within bfloat16's precision of the float32 network's; padding rows add nothing

@@ -20,6 +20,13 @@ Camera-based rule (all distances in metres):
    capped as in step 2.
    In both rules the cap is skipped only if a camera sits at the centre itself (it would give
    an empty box).
+4. Ground footprint (rule "footprint"), after step 2: when the cameras stand on one side of
+   ``p`` (a hemisphere or an arc over a table: the mean unit vector from ``p`` to them is at
+   least :data:`ONE_SIDED` long), their oblique views see a ground (the table, a bench, a
+   floor) beyond the cube. The box is the cube grown to hold the points of the plane
+   through ``p`` facing the cameras, out to the cameras' median distance from ``p``, that at
+   least :data:`GROUND_COVERAGE` of the cameras see (:func:`_ground_footprint`). It is then
+   no longer a cube.
 
 Whether the bounds are enough (:func:`choose_space`, used by the reader): a box models only
 what lies inside it. Outdoors the content reaches far beyond the cameras: such a scene is
@@ -39,6 +46,15 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
+#: Length of the mean unit vector from the scene centre to the cameras above which the cameras
+#: stand on one side of the scene (a hemisphere: about 0.5-0.9; a full sphere: about 0), so
+#: the bounds hold the ground their oblique views see (:func:`_ground_footprint`).
+ONE_SIDED = 0.5
+#: Share of the cameras that must see a point of that ground for the bounds to hold it, and
+#: the polar grid the ground is probed on (radii out to the cameras' median distance).
+GROUND_COVERAGE = 0.15
+GROUND_RINGS = 40
+GROUND_AZIMUTHS = 48
 #: Relative margin added to manifest bounds on every side, per axis, and its floor in metres.
 MANIFEST_PAD_FRACTION = 0.05
 MANIFEST_PAD_MIN = 0.01
@@ -113,8 +129,52 @@ def _capped_cube(centre: np.ndarray, half: float, origins: np.ndarray) -> np.nda
     return np.stack([centre - half, centre + half])
 
 
+def _ground_footprint(centre: np.ndarray, c2w: np.ndarray, intrinsics: np.ndarray,
+                      sizes: np.ndarray) -> np.ndarray | None:
+    """(M, 3) points of the plane through ``centre`` facing the cameras that at least
+    :data:`GROUND_COVERAGE` of the cameras see (metres), or None when the cameras do not
+    stand on one side of it.
+
+    Cameras on one side of what they look at (a hemisphere over a table, an arc) see a
+    ground around it, a table, a bench or a floor, which may reach beyond the cube their
+    axes meet in. The plane's normal is the mean direction from ``centre`` to the cameras;
+    it counts when that mean is at least :data:`ONE_SIDED` long (a full sphere of cameras
+    has none). The plane is probed on a polar grid out to the cameras' median distance from
+    ``centre`` (:data:`GROUND_RINGS` radii x :data:`GROUND_AZIMUTHS` directions); a point
+    counts when it lies in front of and inside the image of enough cameras.
+    """
+    origins = c2w[:, :3, 3]
+    to_cams = origins - centre
+    dist = np.linalg.norm(to_cams, axis=1)
+    if np.any(dist <= 1e-9):
+        return None
+    mean_dir = (to_cams / dist[:, None]).mean(axis=0)
+    if np.linalg.norm(mean_dir) < ONE_SIDED:
+        return None
+    up = mean_dir / np.linalg.norm(mean_dir)
+    e1 = np.cross(up, np.eye(3)[int(np.argmin(np.abs(up)))])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(up, e1)
+    radii = np.linspace(0.0, float(np.median(dist)), GROUND_RINGS + 1)[1:]
+    az = np.linspace(0.0, 2.0 * math.pi, GROUND_AZIMUTHS, endpoint=False)
+    offsets = (radii[:, None, None] * (np.cos(az)[None, :, None] * e1
+                                       + np.sin(az)[None, :, None] * e2)).reshape(-1, 3)
+    points = centre + offsets                                        # (M, 3)
+    rot = c2w[:, :3, :3]
+    cam = np.einsum("nji,nmj->nmi", rot, points[None] - origins[:, None])   # (N, M, 3)
+    depth = -cam[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = cam[..., 0] / depth * intrinsics[:, None, 0] + intrinsics[:, None, 2]
+        v = -cam[..., 1] / depth * intrinsics[:, None, 1] + intrinsics[:, None, 3]
+    seen = ((depth > 0) & (u >= 0) & (u <= sizes[:, None, 0]) & (v >= 0)
+            & (v <= sizes[:, None, 1]))
+    kept = points[seen.mean(axis=0) >= GROUND_COVERAGE]
+    return kept if len(kept) else None
+
+
 def estimate_bounds_with_rule(c2w, intrinsics, sizes) -> tuple[np.ndarray, str]:
-    """:func:`estimate_bounds_from_cameras` plus the rule used: "axes" or "look_points"."""
+    """:func:`estimate_bounds_from_cameras` plus the rule used: "axes", "footprint" or
+    "look_points"."""
     c2w = np.asarray(c2w, dtype=np.float64).reshape(-1, 4, 4)
     intrinsics = np.asarray(intrinsics, dtype=np.float64).reshape(-1, 4)
     sizes = np.asarray(sizes, dtype=np.float64).reshape(-1, 2)
@@ -135,7 +195,12 @@ def estimate_bounds_with_rule(c2w, intrinsics, sizes) -> tuple[np.ndarray, str]:
         if np.median(np.einsum("ni,ni->n", centre - origins, dirs)) > 0.0:
             dist = np.linalg.norm(origins - centre, axis=1)
             half = SIZE_FACTOR * float(np.median(dist * tan_half))
-            return _capped_cube(centre, half, origins), "axes"
+            cube = _capped_cube(centre, half, origins)
+            ground = _ground_footprint(centre, c2w, intrinsics, sizes)
+            if ground is None:
+                return cube, "axes"
+            return np.stack([np.minimum(cube[0], ground.min(axis=0)),
+                             np.maximum(cube[1], ground.max(axis=0))]), "footprint"
 
     centroid = origins.mean(axis=0)
     look = max(float(np.median(np.linalg.norm(origins - centroid, axis=1))), MIN_LOOK_DISTANCE)
@@ -155,7 +220,8 @@ def estimate_bounds_from_cameras(c2w, intrinsics, sizes) -> np.ndarray:
         sizes: (N, 2) image width, height in pixels.
 
     Returns:
-        (2, 3) float64 min / max corners of a cube, metres.
+        (2, 3) float64 min / max corners of a box (a cube unless the ground footprint grew
+        it), metres.
     """
     return estimate_bounds_with_rule(c2w, intrinsics, sizes)[0]
 

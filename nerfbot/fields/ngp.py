@@ -54,6 +54,17 @@ class NGPFieldConfig(HashGridConfig):
     pixel fade out: a far view of fine texture fits its average on the coarse levels and leaves
     the fine ones to the near views. 0: point samples, every level at full weight (Instant-NGP);
     density queries at points (maps, meshes) always see every level."""
+    level_warmup: float = 0.0
+    """Coarse to fine (as BARF and Neuralangelo anneal their encodings): over the first
+    ``level_warmup`` of the training budget the hash levels fade in one after another, the
+    ``level_warmup_first`` coarsest ones from the start, each later level l weighted
+    0.5 (1 - cos(pi r)), r = clamp(a - l, 0, 1), a rising linearly from
+    ``level_warmup_first`` to L. Without fine levels a surface can only fit the images where
+    the views agree on it, so weakly textured surfaces (a plain bench top) take their depth
+    from the coarse levels before the fine ones paint detail. 0: every level from the start
+    (Instant-NGP)."""
+    level_warmup_first: int = 4
+    """Hash levels at full weight from the start of ``level_warmup``."""
     mlp_precision: str = "fp32"
     """"bf16": the MLPs run under bfloat16 autocast (AMX / AVX-512 BF16 on CPU, tensor cores on
     GPU), their rows padded to a multiple of 2048 (:func:`~nerfbot.fields.base.run_mlp`),
@@ -100,6 +111,14 @@ class NGPField(Field):
         self._path_shift = 0.0
         if cfg.footprint_scale < 0:
             raise ValueError(f"footprint_scale must be >= 0, got {cfg.footprint_scale}")
+        if not 0.0 <= cfg.level_warmup < 1.0:
+            raise ValueError(f"level_warmup must be in [0, 1), got {cfg.level_warmup}")
+        if not 1 <= cfg.level_warmup_first <= cfg.n_levels:
+            raise ValueError(f"level_warmup_first must be 1 to n_levels ({cfg.n_levels}), got "
+                             f"{cfg.level_warmup_first}")
+        #: (L * F,) weights of the hash features during the level warm-up (None: all 1; not
+        #: saved: :meth:`before_step` derives it from the training progress)
+        self._level_feature_weights: Optional[torch.Tensor] = None
         if cfg.mlp_precision not in ("bf16", "fp32"):
             raise ValueError(f"mlp_precision must be 'bf16' or 'fp32', got {cfg.mlp_precision!r}")
 
@@ -148,6 +167,8 @@ class NGPField(Field):
         """(N, L * F) hash features of world points x (N, 3), down-weighted by the footprint
         when ``radius`` (N,) is given and :attr:`uses_footprint`."""
         enc = self.encoding(self.normalize(x))
+        if self._level_feature_weights is not None:
+            enc = enc * self._level_feature_weights.to(enc)
         if radius is None or not self.uses_footprint:
             return enc
         w = self.level_weights(x, radius.to(enc.dtype))
@@ -174,10 +195,28 @@ class NGPField(Field):
 
     def before_step(self, step: int, progress: float) -> dict:
         """During the SH warm-up (:attr:`NGPFieldConfig.sh_warmup`), weigh band l >= 1 by
-        0.5 (1 - cos(pi r)), r = clamp(progress / warmup * degree - (l - 1), 0, 1)."""
-        self._sh_weights = sh_band_weights(self.config.sh_degree, self.config.sh_warmup,
-                                           progress)
+        0.5 (1 - cos(pi r)), r = clamp(progress / warmup * degree - (l - 1), 0, 1); during
+        the level warm-up (:attr:`NGPFieldConfig.level_warmup`), weigh the hash levels."""
+        cfg = self.config
+        self._sh_weights = sh_band_weights(cfg.sh_degree, cfg.sh_warmup, progress)
+        levels = hash_level_weights(cfg.n_levels, cfg.level_warmup_first, cfg.level_warmup,
+                                    progress)
+        self._level_feature_weights = (None if levels is None
+                                       else levels.repeat_interleave(cfg.n_features))
         return {}
+
+
+def hash_level_weights(n_levels: int, first: int, warmup: float,
+                       progress: float) -> Optional[torch.Tensor]:
+    """(n_levels,) weights of the hash levels at ``progress`` in [0, 1] of training: levels
+    below ``first`` at 1, level l >= first at 0.5 (1 - cos(pi r)), r = clamp(a - l, 0, 1) with
+    a = first + (n_levels - first) progress / warmup; None once every level is fully in (or
+    without a warm-up)."""
+    if warmup <= 0 or first >= n_levels or progress >= warmup:
+        return None
+    a = first + (n_levels - first) * progress / warmup
+    ramp = (a - torch.arange(n_levels, dtype=torch.float64)).clamp(0.0, 1.0)
+    return (0.5 * (1.0 - torch.cos(math.pi * ramp))).float()
 
 
 def sh_band_weights(degree: int, warmup: float, progress: float) -> Optional[torch.Tensor]:

@@ -16,7 +16,7 @@ from nerfbot.fields.base import Field
 from nerfbot.models.base import ADAPTIVE_TOLERANCE, Model, photometric_loss
 from nerfbot.ops.cameras import Rays
 from nerfbot.ops.contraction import disparity_distance
-from nerfbot.ops.losses import distortion_loss
+from nerfbot.ops.losses import distortion_loss, opacity_entropy_loss
 from nerfbot.ops.rendering import RenderOutput, composite, render_weights
 from nerfbot.ops.sampling import OccupancyGrid, ray_aabb
 
@@ -74,6 +74,11 @@ class OccupancyModelConfig:
     distances are measured in cube diagonals. 0.01 gained 0.2-0.6 dB test PSNR on the tabletop
     within 180 s and brought object depth from 2.97 to 2.80 cm (BENCHMARKS.md); 0 turns it
     off."""
+    opacity_entropy_weight: float = 0.0
+    """Weight of the mean binary entropy of the training rays' opacities
+    (:func:`~nerfbot.ops.losses.opacity_entropy_loss`): pushes every ray toward opaque or
+    empty, so a surface inside the bounds does not turn half transparent to mix the learned
+    background into its colour. 0 turns it off."""
     density_noise: float = 0.0
     """Standard deviation s of the noise on each training sample's log-density: its density is
     multiplied by exp(N(0, s^2)) (the original NeRF's noise on raw density, for exponential
@@ -154,8 +159,9 @@ class OccupancyModelConfig:
             if getattr(self, name) < 1:
                 raise ValueError(f"option {name}: must be >= 1, got {getattr(self, name)}")
         for name in ("grid_warmup_steps", "grid_threshold", "cone_angle", "distortion_weight",
-                     "density_noise", "shade_min_weight", "near_gradient_distance",
-                     "supersample_tolerance", "carving_weight", "adaptive_tolerance"):
+                     "opacity_entropy_weight", "density_noise", "shade_min_weight",
+                     "near_gradient_distance", "supersample_tolerance", "carving_weight",
+                     "adaptive_tolerance"):
             if getattr(self, name) < 0:
                 raise ValueError(f"option {name}: must be >= 0, got {getattr(self, name)}")
         if self.density_noise_centre not in ("median", "mean"):
@@ -442,6 +448,8 @@ class OccupancyModel(Model):
                 ts, te = disparity_distance(ts, diagonal), disparity_distance(te, diagonal)
             loss = loss + self.config.distortion_weight * distortion_loss(
                 out.weights, ts, te, out.ray_indices, len(rays), diagonal)
+        if self.config.opacity_entropy_weight > 0:
+            loss = loss + self.config.opacity_entropy_weight * opacity_entropy_loss(out.opacity)
         if self.config.carving_weight > 0:
             loss = loss + self.config.carving_weight * self.carving_loss(generator)
         reg = self.field.regularizer()

@@ -44,6 +44,31 @@ def distortion_loss(weights: torch.Tensor, t_starts: torch.Tensor, t_ends: torch
     return ((bi + uni).sum() / max(n_rays, 1)).to(work_dtype(weights))
 
 
+#: Opacities are clamped to [eps, 1 - eps] inside :func:`opacity_entropy_loss`: the entropy's
+#: slope, log((1 - a) / a), stays within +-9.2 at saturated or empty rays.
+OPACITY_EPS = 1e-4
+
+
+def opacity_entropy_loss(opacity: torch.Tensor) -> torch.Tensor:
+    """Mean binary entropy of the rays' opacities, -a log a - (1 - a) log(1 - a), in nats.
+
+    About zero for rays that are empty (a = 0: the background shows) or opaque (a = 1;
+    1e-3 nats at the clamp :data:`OPACITY_EPS`), log 2 at a = 1/2. Minimising it pushes each ray toward one or the other: a ray that stops on a
+    surface inside the bounds should not let the learned background through, which otherwise
+    paints dark texture (a checker's dark squares, grout lines) by mixing the background into
+    a half-transparent surface.
+
+    Args:
+        opacity: (R,) accumulated weights in [0, 1].
+    Returns:
+        scalar in the dtype of ``opacity``, at least float32 (0 for no rays).
+    """
+    if opacity.numel() == 0:
+        return opacity.sum()
+    a = opacity.to(work_dtype(opacity)).clamp(OPACITY_EPS, 1.0 - OPACITY_EPS)
+    return -(a * torch.log(a) + (1.0 - a) * torch.log1p(-a)).mean()
+
+
 #: Floor of a sample's weight inside the logarithm of :func:`keypoint_depth_loss`: a ray whose
 #: weights are all zero (empty space so far) still has a finite loss and gradient.
 KEYPOINT_WEIGHT_FLOOR = 1e-5
