@@ -39,6 +39,11 @@ from sims.sensor import DepthSensorModel
 
 log = logging.getLogger(__name__)
 
+#: MuJoCo's default headlight diffuse and specular intensities (``<visual><headlight>``), given
+#: to a scene without a moving headlight when a capture asks for one.
+DEFAULT_HEADLIGHT_DIFFUSE = 0.4
+DEFAULT_HEADLIGHT_SPECULAR = 0.5
+
 
 def _check_destination(out_dir: Path, overwrite: bool) -> None:
     """FileExistsError unless ``out_dir`` may receive a dataset (:mod:`nerfbot.data.outputs`)."""
@@ -67,18 +72,27 @@ def set_lighting(model: mujoco.MjModel, headlight: bool = False) -> str:
     MuJoCo's headlight (on in every MJCF unless it says otherwise) is attached to the viewing
     camera, so its diffuse and specular terms shade the scene differently from every viewpoint.
     By default they are turned off, its ambient term kept: "static". With ``headlight`` they
-    stay, as a light mounted on a robot's camera would shade: "headlight". A scene whose
-    headlight has no diffuse or specular light is "static" either way.
+    stay, as a light mounted on a robot's camera would shade: "headlight"; a scene whose
+    headlight has no diffuse or specular light (the built-in scenes and the zoo's) gets
+    MuJoCo's default ones (:data:`DEFAULT_HEADLIGHT_DIFFUSE`, :data:`DEFAULT_HEADLIGHT_SPECULAR`).
     """
     head = model.vis.headlight
     moving = bool(head.active) and (np.any(np.asarray(head.diffuse) > 0)
                                     or np.any(np.asarray(head.specular) > 0))
+    if headlight:
+        if not moving:
+            head.active = 1
+            head.diffuse[:] = DEFAULT_HEADLIGHT_DIFFUSE
+            head.specular[:] = DEFAULT_HEADLIGHT_SPECULAR
+            log.warning("the scene's headlight has no diffuse or specular light: --headlight "
+                        "gives it MuJoCo's default (diffuse %.1f, specular %.1f), which moves "
+                        "with the camera", DEFAULT_HEADLIGHT_DIFFUSE, DEFAULT_HEADLIGHT_SPECULAR)
+        else:
+            log.warning("keeping the scene's headlight: its diffuse and specular light move "
+                        "with the camera, so shading changes with the viewpoint")
+        return "headlight"
     if not moving:
         return "static"
-    if headlight:
-        log.warning("keeping the scene's headlight: its diffuse and specular light move with the "
-                    "camera, so shading changes with the viewpoint")
-        return "headlight"
     head.diffuse[:] = 0.0
     head.specular[:] = 0.0
     log.info("static lighting: the headlight keeps only its ambient light, so shading does not "

@@ -122,9 +122,10 @@ def add_capture_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentP
     parser.add_argument("--format", choices=FORMATS, default="nerfstudio", dest="format",
                         help="dataset format (default nerfstudio)")
     parser.add_argument("--headlight", action="store_true",
-                        help="keep the scene's headlight, whose diffuse and specular light follow "
-                             "the camera (as a light on a robot's camera does); default: static "
-                             "lighting, the headlight's ambient term only")
+                        help="light with the scene's headlight, whose diffuse and specular light "
+                             "follow the camera (as a light on a robot's camera does); a scene "
+                             "without one gets MuJoCo's default (diffuse 0.4, specular 0.5); "
+                             "default: static lighting, the headlight's ambient term only")
     parser.add_argument("--no-manifest", action="store_true",
                         help="do not write the scene manifest ('scene' object)")
     parser.add_argument("--seed", type=_seed, default=0, help="random seed of the rig (default 0)")

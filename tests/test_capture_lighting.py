@@ -6,12 +6,14 @@ from __future__ import annotations
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 
 from nerfbot.ops.cameras import look_at, spherical_eye
 from sims.camera import CaptureCamera
-from sims.capture import set_lighting
+from sims.capture import (DEFAULT_HEADLIGHT_DIFFUSE, DEFAULT_HEADLIGHT_SPECULAR,
+                          set_lighting)
 from sims.scene import load_capture_model
 
 #: A matte grey box lit from above by a fixed light; no <visual>, so MuJoCo's default headlight
@@ -75,11 +77,30 @@ def test_capture_records_its_lighting(tmp_path):
         assert manifest["lighting"] == expected
 
 
-@pytest.mark.parametrize("scene", ["tabletop", "dynamic", "articulated"])
-def test_built_in_scenes_are_already_static(scene):
+@pytest.mark.parametrize("scene", ["tabletop", "dynamic", "articulated", "workspace:0"])
+def test_scenes_without_a_moving_headlight_get_one_when_asked(scene):
     model, _ = load_capture_model(scene)
     before = (model.vis.headlight.diffuse.copy(), model.vis.headlight.specular.copy())
+    assert not before[0].any() and not before[1].any()  # static as built
     assert set_lighting(model, headlight=False) == "static"
-    assert set_lighting(model, headlight=True) == "static"  # nothing follows the camera
     np.testing.assert_array_equal(model.vis.headlight.diffuse, before[0])
     np.testing.assert_array_equal(model.vis.headlight.specular, before[1])
+    assert set_lighting(model, headlight=True) == "headlight"
+    assert model.vis.headlight.active
+    np.testing.assert_allclose(model.vis.headlight.diffuse, DEFAULT_HEADLIGHT_DIFFUSE)
+    np.testing.assert_allclose(model.vis.headlight.specular, DEFAULT_HEADLIGHT_SPECULAR)
+
+
+def test_headlight_shades_a_zoo_scene_differently_from_static(tmp_path):
+    from nerfbot.app.cli import main
+
+    images = {}
+    for flags, name in (([], "static"), (["--headlight"], "headlight")):
+        out = tmp_path / name
+        assert main(["capture", "--scene", "workspace:0", "--views", "2", "--test-views", "1",
+                     "--size", "24", "--out", str(out), "--no-progress", *flags]) == 0
+        manifest = json.loads((out / "transforms.json").read_text())["scene"]
+        assert manifest["lighting"] == name
+        images[name] = np.stack([cv2.imread(str(p)) for p in sorted(out.glob("images/*.png"))])
+    assert images["static"].shape == images["headlight"].shape
+    assert np.abs(images["headlight"].astype(int) - images["static"]).mean() >= 5.0
