@@ -20,13 +20,16 @@ Camera-based rule (all distances in metres):
    capped as in step 2.
    In both rules the cap is skipped only if a camera sits at the centre itself (it would give
    an empty box).
-4. Ground footprint (rule "footprint"), after step 2: when the cameras stand on one side of
-   ``p`` (a hemisphere or an arc over a table: the mean unit vector from ``p`` to them is at
-   least :data:`ONE_SIDED` long), their oblique views see a ground (the table, a bench, a
-   floor) beyond the cube. The box is the cube grown to hold the points of the plane
-   through ``p`` facing the cameras, out to the cameras' median distance from ``p``, that at
-   least :data:`GROUND_COVERAGE` of the cameras see (:func:`_ground_footprint`). It is then
-   no longer a cube.
+4. The ground around it, after step 2: when the cameras stand on one side of ``p`` (a
+   hemisphere or an arc over a table: the mean unit vector from ``p`` to them is at least
+   :data:`ONE_SIDED` long), their oblique views see a ground (the table, a bench, a floor)
+   that may reach beyond the cube. With the training images (as :func:`load_dataset` gives
+   them), the cube grows over the surface the images agree on around it
+   (:mod:`nerfbot.data.surface_extent`, rule "surface"; the cube alone, "axes", when they
+   agree on none). From poses alone, it grows to hold the points of the plane through ``p``
+   facing the cameras, out to their median distance from ``p``, that at least
+   :data:`GROUND_COVERAGE` of the cameras see (:func:`_ground_footprint`, rule
+   "footprint"). Either box is then no longer a cube.
 
 Whether the bounds are enough (:func:`choose_space`, used by the reader): a box models only
 what lies inside it. Outdoors the content reaches far beyond the cameras: such a scene is
@@ -43,6 +46,8 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+
+from nerfbot.data.surface_extent import surface_points
 
 log = logging.getLogger(__name__)
 
@@ -144,14 +149,12 @@ def _ground_footprint(centre: np.ndarray, c2w: np.ndarray, intrinsics: np.ndarra
     counts when it lies in front of and inside the image of enough cameras.
     """
     origins = c2w[:, :3, 3]
+    if not _one_sided(centre, origins):
+        return None
     to_cams = origins - centre
     dist = np.linalg.norm(to_cams, axis=1)
-    if np.any(dist <= 1e-9):
-        return None
-    mean_dir = (to_cams / dist[:, None]).mean(axis=0)
-    if np.linalg.norm(mean_dir) < ONE_SIDED:
-        return None
-    up = mean_dir / np.linalg.norm(mean_dir)
+    up = (to_cams / dist[:, None]).mean(axis=0)
+    up /= np.linalg.norm(up)
     e1 = np.cross(up, np.eye(3)[int(np.argmin(np.abs(up)))])
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(up, e1)
@@ -172,9 +175,25 @@ def _ground_footprint(centre: np.ndarray, c2w: np.ndarray, intrinsics: np.ndarra
     return kept if len(kept) else None
 
 
-def estimate_bounds_with_rule(c2w, intrinsics, sizes) -> tuple[np.ndarray, str]:
-    """:func:`estimate_bounds_from_cameras` plus the rule used: "axes", "footprint" or
-    "look_points"."""
+def _one_sided(centre: np.ndarray, origins: np.ndarray) -> bool:
+    """Whether the cameras stand on one side of ``centre``: the mean unit vector from it to
+    them is at least :data:`ONE_SIDED` long."""
+    to_cams = origins - centre
+    dist = np.linalg.norm(to_cams, axis=1)
+    if np.any(dist <= 1e-9):
+        return False
+    return float(np.linalg.norm((to_cams / dist[:, None]).mean(axis=0))) >= ONE_SIDED
+
+
+def _grown(box: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(2, 3) ``box`` grown to hold ``points`` (K, 3)."""
+    return np.stack([np.minimum(box[0], points.min(axis=0)),
+                     np.maximum(box[1], points.max(axis=0))])
+
+
+def estimate_bounds_with_rule(c2w, intrinsics, sizes, images=None) -> tuple[np.ndarray, str]:
+    """:func:`estimate_bounds_from_cameras` plus the rule used: "axes", "surface",
+    "footprint" or "look_points"."""
     c2w = np.asarray(c2w, dtype=np.float64).reshape(-1, 4, 4)
     intrinsics = np.asarray(intrinsics, dtype=np.float64).reshape(-1, 4)
     sizes = np.asarray(sizes, dtype=np.float64).reshape(-1, 2)
@@ -196,11 +215,18 @@ def estimate_bounds_with_rule(c2w, intrinsics, sizes) -> tuple[np.ndarray, str]:
             dist = np.linalg.norm(origins - centre, axis=1)
             half = SIZE_FACTOR * float(np.median(dist * tan_half))
             cube = _capped_cube(centre, half, origins)
+            if images is not None:
+                used = [i for i, image in enumerate(images) if image is not None]
+                if len(used) >= 2 and _one_sided(centre, origins):
+                    surface = surface_points(cube, c2w[used], intrinsics[used],
+                                             [images[i] for i in used])
+                    if surface is not None:
+                        return _grown(cube, surface), "surface"
+                return cube, "axes"
             ground = _ground_footprint(centre, c2w, intrinsics, sizes)
             if ground is None:
                 return cube, "axes"
-            return np.stack([np.minimum(cube[0], ground.min(axis=0)),
-                             np.maximum(cube[1], ground.max(axis=0))]), "footprint"
+            return _grown(cube, ground), "footprint"
 
     centroid = origins.mean(axis=0)
     look = max(float(np.median(np.linalg.norm(origins - centroid, axis=1))), MIN_LOOK_DISTANCE)
@@ -211,19 +237,23 @@ def estimate_bounds_with_rule(c2w, intrinsics, sizes) -> tuple[np.ndarray, str]:
     return _capped_cube(centre, half, origins), "look_points"
 
 
-def estimate_bounds_from_cameras(c2w, intrinsics, sizes) -> np.ndarray:
-    """Estimate scene bounds from camera poses alone (see the module docstring for the rule).
+def estimate_bounds_from_cameras(c2w, intrinsics, sizes, images=None) -> np.ndarray:
+    """Estimate scene bounds from the cameras (see the module docstring for the rule).
 
     Args:
         c2w: (N, 4, 4) camera-to-world poses, OpenGL convention (cameras look along -z), metres.
         intrinsics: (N, 4) fx, fy, cx, cy in pixels.
         sizes: (N, 2) image width, height in pixels.
+        images: optional N uint8 (H, W, 3) RGB images, None for a camera whose image should
+            not take part (a test view): with them the box grows over the surface the images
+            agree on (rule "surface"), without them over the ground the cameras see
+            ("footprint").
 
     Returns:
         (2, 3) float64 min / max corners of a box (a cube unless the ground footprint grew
         it), metres.
     """
-    return estimate_bounds_with_rule(c2w, intrinsics, sizes)[0]
+    return estimate_bounds_with_rule(c2w, intrinsics, sizes, images)[0]
 
 
 def camera_region(c2w) -> np.ndarray:

@@ -327,8 +327,10 @@ def _check_cameras_near_scene(specs: list[FrameSpec], c2w: np.ndarray, box: np.n
                            "are the poses in metres and in the scene's frame?")
 
 
-def _bounds(aabb, parsed: ParsedDataset, c2w, intrinsics, sizes) -> tuple[np.ndarray, str, str]:
-    """(aabb (2, 3), aabb_source, rule): user > manifest scene.bounds (padded) > cameras."""
+def _bounds(aabb, parsed: ParsedDataset, c2w, intrinsics, sizes,
+            images) -> tuple[np.ndarray, str, str]:
+    """(aabb (2, 3), aabb_source, rule): user > manifest scene.bounds (padded) > cameras (and
+    ``images``, the training views' RGB, None for the others)."""
     manifest_box = None
     if parsed.manifest is not None and "bounds" in parsed.manifest:
         try:
@@ -340,7 +342,7 @@ def _bounds(aabb, parsed: ParsedDataset, c2w, intrinsics, sizes) -> tuple[np.nda
         return as_aabb(aabb, "aabb argument", strict=True), "user", "user"
     if manifest_box is not None:
         return pad_bounds(manifest_box), "manifest", "manifest_padded"
-    box, rule = estimate_bounds_with_rule(c2w, intrinsics, sizes)
+    box, rule = estimate_bounds_with_rule(c2w, intrinsics, sizes, images)
     return box, "cameras", rule
 
 
@@ -386,7 +388,9 @@ def load_dataset(path: Union[str, os.PathLike], *, aabb=None, background=None) -
     intrinsics = np.array([[f.intr.fx, f.intr.fy, f.intr.cx, f.intr.cy] for f in frames],
                           dtype=np.float64)
     sizes = np.array([[f.intr.width, f.intr.height] for f in frames], dtype=np.int64)
-    box, source, rule = _bounds(aabb, parsed, c2w, intrinsics, sizes)
+    train = set(splits.get("train", range(len(frames))))
+    box, source, rule = _bounds(aabb, parsed, c2w, intrinsics, sizes,
+                                [f.rgb if i in train else None for i, f in enumerate(frames)])
     if source == "manifest":
         _check_cameras_near_scene(specs, c2w, box)
     space = choose_space(box, source, c2w)

@@ -1,0 +1,162 @@
+"""How far a surface around the scene reaches, from where the training images agree on it.
+
+Cameras on one side of what they look at (a hemisphere over a table, an arc) see a ground
+around it, a table, a bench, which may reach beyond the cube their optical axes meet in
+(:mod:`nerfbot.data.bounds`). The poses alone cannot say how far: a table that ends inside the
+cube and one that fills every view give the same cameras. The images can. A point on a
+textured surface looks the same from every camera that sees it, though each sees it inside
+texture that varies from pixel to pixel; a point above or below the surface is seen on
+different parts of the texture. Sky, a plain wall or a background composited on white hold
+no texture and say nothing either way.
+
+The probe: the plane through the cube's centre facing the cameras (the mean direction to them)
+on a polar grid out to the cameras' median distance, each grid point swept along the normal
+over the cube's height. At each swept point the cameras that see it (at least
+:data:`MIN_VIEWS`) give a colour (images blurred by one pixel, at most :data:`MAX_SIDE` pixels
+wide); their disagreement is the median over the cameras of the L1 distance (RGB in [0, 1],
+summed over channels) to the per-channel median colour, and the texture there the median of
+the images' local contrast (:func:`_local_contrast`). A grid point shows a surface when, at
+the height where the cameras disagree least, the texture is at least :data:`MIN_TEXTURE` and
+the disagreement at most :data:`RATIO` times the texture. Walking outward from the cube along
+each direction, the surface's points are kept until :data:`GAP` grid rings in a row show none.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+#: Polar grid of the probe: rings out to the cameras' median distance, directions, and the
+#: heights each grid point is swept over (across the cube's height along the normal).
+RINGS = 40
+AZIMUTHS = 48
+HEIGHTS = 17
+#: Fewest cameras that must see a swept point for its disagreement to count.
+MIN_VIEWS = 4
+#: A surface: where the cameras see the point at its best height, the images' local contrast
+#: (:func:`_local_contrast`, median over the cameras) is at least MIN_TEXTURE, and the cameras'
+#: disagreement at most RATIO times that contrast. A MuJoCo sky's contrast at 128 px is about
+#: 0.002, a faintly textured bench's or a wood grain's seen from afar 0.02.
+RATIO = 0.6
+MIN_TEXTURE = 0.01
+#: Rings in a row without a surface that end the outward walk along a direction.
+GAP = 2
+#: Images are resized so their larger side is at most this many pixels before probing.
+MAX_SIDE = 256
+#: At most this many cameras (evenly spaced in the list) take part.
+MAX_CAMERAS = 120
+
+
+def _prepared(images, intrinsics: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+    """Blurred float32 RGB images in [0, 1], resized to :data:`MAX_SIDE`, and (N, 4)
+    intrinsics scaled with them."""
+    out, scaled = [], np.array(intrinsics, dtype=np.float64)
+    for i, image in enumerate(images):
+        rgb = np.asarray(image)[..., :3].astype(np.float32) / 255.0
+        scale = min(1.0, MAX_SIDE / max(rgb.shape[:2]))
+        if scale < 1.0:
+            rgb = cv2.resize(rgb, (round(rgb.shape[1] * scale), round(rgb.shape[0] * scale)),
+                             interpolation=cv2.INTER_AREA)
+            scaled[i] *= np.array([rgb.shape[1] / image.shape[1], rgb.shape[0] / image.shape[0],
+                                   rgb.shape[1] / image.shape[1], rgb.shape[0] / image.shape[0]])
+        out.append(cv2.GaussianBlur(rgb, (0, 0), 1.0))
+    return out, scaled
+
+
+def _local_contrast(image: np.ndarray) -> np.ndarray:
+    """(H, W) standard deviation of each colour channel over a 5 x 5 window, summed over the
+    channels: how much texture a pixel's neighbourhood holds."""
+    mean = cv2.blur(image, (5, 5))
+    square = cv2.blur(image * image, (5, 5))
+    return np.sqrt(np.maximum(square - mean * mean, 0.0)).sum(axis=-1)
+
+
+def _disagreement(points: np.ndarray, c2w: np.ndarray, intrinsics: np.ndarray,
+                  images: list[np.ndarray],
+                  contrasts: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """For points (M, 3): (M,) median L1 distance of the cameras' colours to their median
+    colour, and (M,) median over the cameras of the local contrast where they see the point;
+    NaN where fewer than :data:`MIN_VIEWS` cameras see it."""
+    colours = np.full((len(images), len(points), 3), np.nan, dtype=np.float32)
+    texture = np.full((len(images), len(points)), np.nan, dtype=np.float32)
+    for n, image in enumerate(images):
+        cam = (points - c2w[n, :3, 3]) @ c2w[n, :3, :3]              # (M, 3) camera frame
+        depth = -cam[:, 2]
+        h, w = image.shape[:2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = cam[:, 0] / depth * intrinsics[n, 0] + intrinsics[n, 2]
+            v = -cam[:, 1] / depth * intrinsics[n, 1] + intrinsics[n, 3]
+        seen = (depth > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        row, col = v[seen].astype(np.int64), u[seen].astype(np.int64)
+        colours[n, seen] = image[row, col]
+        texture[n, seen] = contrasts[n][row, col]
+    views = np.isfinite(colours[..., 0]).sum(axis=0)
+    cost = np.full(len(points), np.nan)
+    local = np.full(len(points), np.nan)
+    ok = views >= MIN_VIEWS
+    if ok.any():
+        c = colours[:, ok]
+        median = np.nanmedian(c, axis=0)
+        cost[ok] = np.nanmedian(np.abs(c - median[None]).sum(axis=-1), axis=0)
+        local[ok] = np.nanmedian(texture[:, ok], axis=0)
+    return cost, local
+
+
+def surface_points(cube: np.ndarray, c2w: np.ndarray, intrinsics: np.ndarray,
+                   images) -> np.ndarray | None:
+    """(K, 3) points, metres, of a surface the images agree on outside ``cube``, reached from
+    it without a gap (see the module docstring), or None when there are none.
+
+    Args:
+        cube: (2, 3) min / max corners of the cube the cameras' axes meet in.
+        c2w: (N, 4, 4) camera-to-world poses, OpenGL convention.
+        intrinsics: (N, 4) fx, fy, cx, cy in pixels of ``images``.
+        images: N uint8 (H, W, 3) RGB images.
+    """
+    c2w = np.asarray(c2w, dtype=np.float64)
+    keep = np.unique(np.linspace(0, len(c2w) - 1, min(len(c2w), MAX_CAMERAS)).round()
+                     .astype(np.int64))
+    c2w = c2w[keep]
+    prepared, scaled = _prepared([images[i] for i in keep], np.asarray(intrinsics)[keep])
+    centre = 0.5 * (cube[0] + cube[1])
+    half = 0.5 * float(np.max(cube[1] - cube[0]))
+    to_cams = c2w[:, :3, 3] - centre
+    dist = np.linalg.norm(to_cams, axis=1)
+    normal = (to_cams / np.maximum(dist, 1e-9)[:, None]).mean(axis=0)
+    normal /= max(float(np.linalg.norm(normal)), 1e-12)
+    e1 = np.cross(normal, np.eye(3)[int(np.argmin(np.abs(normal)))])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(normal, e1)
+    radii = np.linspace(0.0, float(np.median(dist)), RINGS + 1)[1:]
+    az = np.linspace(0.0, 2.0 * math.pi, AZIMUTHS, endpoint=False)
+    heights = np.linspace(-half, half, HEIGHTS)
+    ring = radii[:, None, None] * (np.cos(az)[None, :, None] * e1
+                                   + np.sin(az)[None, :, None] * e2)        # (R, A, 3)
+    points = (centre + ring[:, :, None] + heights[None, None, :, None] * normal)  # (R, A, H, 3)
+    cost, local = _disagreement(points.reshape(-1, 3), c2w, scaled, prepared,
+                                [_local_contrast(image) for image in prepared])
+    cost = cost.reshape(RINGS, AZIMUTHS, HEIGHTS)
+    local = local.reshape(RINGS, AZIMUTHS, HEIGHTS)
+    best_h = np.argmin(np.where(np.isfinite(cost), cost, np.inf), axis=2)    # (R, A)
+    best = np.take_along_axis(cost, best_h[..., None], axis=2)[..., 0]
+    texture = np.take_along_axis(local, best_h[..., None], axis=2)[..., 0]
+    with np.errstate(invalid="ignore"):
+        surface = np.isfinite(best) & (texture >= MIN_TEXTURE) & (best <= RATIO * texture)
+    level = centre + ring                                                      # (R, A, 3)
+    inside = np.all((level >= cube[0]) & (level <= cube[1]), axis=-1)         # (R, A)
+    kept = []
+    for a in range(AZIMUTHS):
+        misses = 0
+        for r in range(RINGS):
+            if inside[r, a]:
+                continue
+            if surface[r, a]:
+                misses = 0
+                kept.append(points[r, a, best_h[r, a]])
+            else:
+                misses += 1
+                if misses >= GAP:
+                    break
+    return np.array(kept) if kept else None

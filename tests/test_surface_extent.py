@@ -1,0 +1,88 @@
+"""The camera bounds grow over the surface the training images agree on
+(:mod:`nerfbot.data.surface_extent`): analytic renders of a table top at z = 0 under a sky,
+seen from a hemisphere of cameras."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from nerfbot.data.bounds import estimate_bounds_with_rule
+from nerfbot.ops.cameras import look_at
+
+SIZE = 48
+FOV = 40.0
+RADIUS = 2.0
+
+
+def _cameras(n: int = 40):
+    """(n, 4, 4) poses on a hemisphere of RADIUS around the origin at 25-65 degrees
+    elevation, (n, 4) intrinsics, (n, 2) sizes."""
+    elevations = np.radians([25.0, 38.0, 52.0, 65.0])
+    eyes = [RADIUS * np.array([math.cos(elevations[k % 4]) * math.cos(2 * math.pi * k / n),
+                               math.cos(elevations[k % 4]) * math.sin(2 * math.pi * k / n),
+                               math.sin(elevations[k % 4])]) for k in range(n)]
+    poses = np.stack([look_at(e, np.zeros(3)) for e in eyes])
+    f = 0.5 * SIZE / math.tan(math.radians(FOV) / 2)
+    return poses, np.tile([f, f, SIZE / 2, SIZE / 2], (n, 1)), np.tile([SIZE, SIZE], (n, 1))
+
+
+def _render(pose: np.ndarray, f: float, half: float, textured: bool) -> np.ndarray:
+    """(SIZE, SIZE, 3) uint8 view of a table top |x|, |y| <= half at z = 0 (a random 10 cm
+    tile texture, or plain grey) under a sky whose colour follows the ray's elevation."""
+    v, u = np.mgrid[0:SIZE, 0:SIZE] + 0.5
+    d_cam = np.stack([(u - SIZE / 2) / f, -(v - SIZE / 2) / f, -np.ones_like(u)], axis=-1)
+    d = d_cam @ pose[:3, :3].T
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    o = pose[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = -o[2] / d[..., 2]
+    hit = (t > 0) & np.isfinite(t)
+    p = o + np.where(hit, t, 0.0)[..., None] * d
+    hit &= (np.abs(p[..., 0]) <= half) & (np.abs(p[..., 1]) <= half)
+    sky = np.stack([0.6 + 0.05 * d[..., 2], 0.75 + 0.03 * d[..., 2], np.full(d.shape[:2], 0.95)],
+                   axis=-1)
+    if textured:
+        tiles = np.random.default_rng(7).uniform(0.1, 0.9, (80, 80, 3))
+        ij = np.clip(np.floor((p[..., :2] + 4.0) / 0.1).astype(int), 0, 79)
+        table = tiles[ij[..., 0], ij[..., 1]]
+    else:
+        table = np.full(d.shape[:2] + (3,), 0.6)
+    return (255 * np.where(hit[..., None], table, sky)).astype(np.uint8)
+
+
+def _bounds(half: float, textured: bool = True):
+    poses, intr, sizes = _cameras()
+    images = [_render(p, intr[0, 0], half, textured) for p in poses]
+    return estimate_bounds_with_rule(poses, intr, sizes, images)
+
+
+def test_bounds_grow_to_a_textured_table_beyond_the_cube():
+    poses, intr, sizes = _cameras()
+    cube, rule = estimate_bounds_with_rule(poses, intr, sizes, [None] * len(poses))
+    assert rule == "axes"                       # no image takes part: the axes' cube
+    box, rule = _bounds(half=1.4)
+    assert rule == "surface"
+    cube_half = float(cube[1, 0])
+    assert cube_half < 1.0                      # the table reaches beyond the cube ...
+    assert np.all(box[1, :2] >= 1.1) and np.all(box[0, :2] <= -1.1)   # ... and the box holds it
+    assert np.all(box[1, :2] <= 1.4 + 0.2) and np.all(box[0, :2] >= -1.4 - 0.2)  # not the sky
+    np.testing.assert_allclose(box[:, 2], cube[:, 2])  # the height stays the cube's
+
+
+@pytest.mark.parametrize("half, textured", [(0.5, True), (1.4, False)])
+def test_bounds_stay_near_the_cube_where_the_images_agree_on_no_surface_beyond_it(half,
+                                                                                  textured):
+    """A table that ends inside the cube (sky beyond it), or a plain one: the cube, grown by
+    at most a few probe rings at the table's edge."""
+    poses, intr, sizes = _cameras()
+    cube, _ = estimate_bounds_with_rule(poses, intr, sizes, [None] * len(poses))
+    box, rule = _bounds(half, textured)
+    assert rule in ("axes", "surface")
+    assert np.all(box[0] <= cube[0]) and np.all(box[1] >= cube[1])
+    assert np.all(box[0] >= cube[0] - 0.2) and np.all(box[1] <= cube[1] + 0.2)
+    if not textured:
+        assert rule == "axes"
+        np.testing.assert_allclose(box, cube)
