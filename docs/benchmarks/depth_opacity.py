@@ -5,7 +5,8 @@ usage: python docs/benchmarks/depth_opacity.py OUT.png DATA:VIEWS RUN [RUN ...] 
 
 VIEWS are indices into DATA's test split, which must have depth. One row per view: the captured
 image and its depth, then for each run its render (titled with the view's PSNR), its z-depth
-error (0-5 cm, sky pixels left out) and its opacity (0-1; below 1 the learned background shows through).
+error (0-5 cm, sky pixels left out) and its opacity (0-1; below 1 the learned background
+shows through).
 """
 import argparse
 

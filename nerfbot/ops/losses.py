@@ -53,10 +53,10 @@ def opacity_entropy_loss(opacity: torch.Tensor) -> torch.Tensor:
     """Mean binary entropy of the rays' opacities, -a log a - (1 - a) log(1 - a), in nats.
 
     About zero for rays that are empty (a = 0: the background shows) or opaque (a = 1;
-    1e-3 nats at the clamp :data:`OPACITY_EPS`), log 2 at a = 1/2. Minimising it pushes each ray toward one or the other: a ray that stops on a
-    surface inside the bounds should not let the learned background through, which otherwise
-    paints dark texture (a checker's dark squares, grout lines) by mixing the background into
-    a half-transparent surface.
+    1e-3 nats at the clamp :data:`OPACITY_EPS`), log 2 at a = 1/2. Minimising it pushes each
+    ray toward one or the other: a ray that stops on a surface inside the bounds should not
+    let the learned background through, which otherwise paints dark texture (a checker's dark
+    squares, grout lines) by mixing the background into a half-transparent surface.
 
     Args:
         opacity: (R,) accumulated weights in [0, 1].
