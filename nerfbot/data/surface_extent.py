@@ -28,8 +28,10 @@ import math
 import cv2
 import numpy as np
 
-#: Polar grid of the probe: rings out to the cameras' median distance, directions, and the
-#: heights each grid point is swept over (across the cube's height along the normal).
+#: Polar grid of the probe: rings out to REACH times the cameras' median distance from the
+#: cube's centre, directions, and the heights each grid point is swept over (across the
+#: cube's height along the normal).
+REACH = 1.0
 RINGS = 40
 AZIMUTHS = 48
 HEIGHTS = 17
@@ -129,7 +131,7 @@ def surface_points(cube: np.ndarray, c2w: np.ndarray, intrinsics: np.ndarray,
     e1 = np.cross(normal, np.eye(3)[int(np.argmin(np.abs(normal)))])
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(normal, e1)
-    radii = np.linspace(0.0, float(np.median(dist)), RINGS + 1)[1:]
+    radii = np.linspace(0.0, REACH * float(np.median(dist)), RINGS + 1)[1:]
     az = np.linspace(0.0, 2.0 * math.pi, AZIMUTHS, endpoint=False)
     heights = np.linspace(-half, half, HEIGHTS)
     ring = radii[:, None, None] * (np.cos(az)[None, :, None] * e1
