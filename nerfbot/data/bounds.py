@@ -47,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from nerfbot.data.surface_extent import surface_points
+from nerfbot.data.surface_extent import polar_grid, surface_points
 
 log = logging.getLogger(__name__)
 
@@ -149,20 +149,11 @@ def _ground_footprint(centre: np.ndarray, c2w: np.ndarray, intrinsics: np.ndarra
     counts when it lies in front of and inside the image of enough cameras.
     """
     origins = c2w[:, :3, 3]
-    if not _one_sided(centre, origins):
+    up = _facing_normal(centre, origins)
+    if up is None:
         return None
-    to_cams = origins - centre
-    dist = np.linalg.norm(to_cams, axis=1)
-    up = (to_cams / dist[:, None]).mean(axis=0)
-    up /= np.linalg.norm(up)
-    e1 = np.cross(up, np.eye(3)[int(np.argmin(np.abs(up)))])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(up, e1)
-    radii = np.linspace(0.0, float(np.median(dist)), GROUND_RINGS + 1)[1:]
-    az = np.linspace(0.0, 2.0 * math.pi, GROUND_AZIMUTHS, endpoint=False)
-    offsets = (radii[:, None, None] * (np.cos(az)[None, :, None] * e1
-                                       + np.sin(az)[None, :, None] * e2)).reshape(-1, 3)
-    points = centre + offsets                                        # (M, 3)
+    radius = float(np.median(np.linalg.norm(origins - centre, axis=1)))
+    points = polar_grid(centre, up, radius, GROUND_RINGS, GROUND_AZIMUTHS).reshape(-1, 3)
     rot = c2w[:, :3, :3]
     cam = np.einsum("nji,nmj->nmi", rot, points[None] - origins[:, None])   # (N, M, 3)
     depth = -cam[..., 2]
@@ -175,14 +166,17 @@ def _ground_footprint(centre: np.ndarray, c2w: np.ndarray, intrinsics: np.ndarra
     return kept if len(kept) else None
 
 
-def _one_sided(centre: np.ndarray, origins: np.ndarray) -> bool:
-    """Whether the cameras stand on one side of ``centre``: the mean unit vector from it to
-    them is at least :data:`ONE_SIDED` long."""
+def _facing_normal(centre: np.ndarray, origins: np.ndarray) -> np.ndarray | None:
+    """(3,) unit mean direction from ``centre`` to the cameras at ``origins`` (N, 3), or None
+    when they do not stand on one side of it (that mean is shorter than :data:`ONE_SIDED`,
+    or a camera sits at ``centre``)."""
     to_cams = origins - centre
     dist = np.linalg.norm(to_cams, axis=1)
     if np.any(dist <= 1e-9):
-        return False
-    return float(np.linalg.norm((to_cams / dist[:, None]).mean(axis=0))) >= ONE_SIDED
+        return None
+    mean = (to_cams / dist[:, None]).mean(axis=0)
+    length = float(np.linalg.norm(mean))
+    return mean / length if length >= ONE_SIDED else None
 
 
 def _grown(box: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -217,8 +211,9 @@ def estimate_bounds_with_rule(c2w, intrinsics, sizes, images=None) -> tuple[np.n
             cube = _capped_cube(centre, half, origins)
             if images is not None:
                 used = [i for i, image in enumerate(images) if image is not None]
-                if len(used) >= 2 and _one_sided(centre, origins):
-                    surface = surface_points(cube, c2w[used], intrinsics[used],
+                normal = _facing_normal(centre, origins[used]) if len(used) >= 2 else None
+                if normal is not None:
+                    surface = surface_points(cube, normal, c2w[used], intrinsics[used],
                                              [images[i] for i in used])
                     if surface is not None:
                         return _grown(cube, surface), "surface"
@@ -250,8 +245,8 @@ def estimate_bounds_from_cameras(c2w, intrinsics, sizes, images=None) -> np.ndar
             ("footprint").
 
     Returns:
-        (2, 3) float64 min / max corners of a box (a cube unless the ground footprint grew
-        it), metres.
+        (2, 3) float64 min / max corners of a box (a cube unless the surface or the ground
+        footprint grew it), metres.
     """
     return estimate_bounds_with_rule(c2w, intrinsics, sizes, images)[0]
 

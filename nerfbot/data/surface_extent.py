@@ -106,13 +106,28 @@ def _disagreement(points: np.ndarray, c2w: np.ndarray, intrinsics: np.ndarray,
     return cost, local
 
 
-def surface_points(cube: np.ndarray, c2w: np.ndarray, intrinsics: np.ndarray,
-                   images) -> np.ndarray | None:
+def polar_grid(centre: np.ndarray, normal: np.ndarray, radius: float, rings: int,
+               azimuths: int) -> np.ndarray:
+    """(rings, azimuths, 3) points, metres, of the plane through ``centre`` (3,) with unit
+    ``normal`` (3,): ``rings`` radii evenly out to ``radius`` (0 excluded) x ``azimuths``
+    directions."""
+    e1 = np.cross(normal, np.eye(3)[int(np.argmin(np.abs(normal)))])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(normal, e1)
+    radii = np.linspace(0.0, radius, rings + 1)[1:]
+    az = np.linspace(0.0, 2.0 * math.pi, azimuths, endpoint=False)
+    return centre + radii[:, None, None] * (np.cos(az)[None, :, None] * e1
+                                            + np.sin(az)[None, :, None] * e2)
+
+
+def surface_points(cube: np.ndarray, normal: np.ndarray, c2w: np.ndarray,
+                   intrinsics: np.ndarray, images) -> np.ndarray | None:
     """(K, 3) points, metres, of a surface the images agree on outside ``cube``, reached from
     it without a gap (see the module docstring), or None when there are none.
 
     Args:
         cube: (2, 3) min / max corners of the cube the cameras' axes meet in.
+        normal: (3,) unit normal of the probed plane, toward the cameras.
         c2w: (N, 4, 4) camera-to-world poses, OpenGL convention.
         intrinsics: (N, 4) fx, fy, cx, cy in pixels of ``images``.
         images: N uint8 (H, W, 3) RGB images.
@@ -124,19 +139,10 @@ def surface_points(cube: np.ndarray, c2w: np.ndarray, intrinsics: np.ndarray,
     prepared, scaled = _prepared([images[i] for i in keep], np.asarray(intrinsics)[keep])
     centre = 0.5 * (cube[0] + cube[1])
     half = 0.5 * float(np.max(cube[1] - cube[0]))
-    to_cams = c2w[:, :3, 3] - centre
-    dist = np.linalg.norm(to_cams, axis=1)
-    normal = (to_cams / np.maximum(dist, 1e-9)[:, None]).mean(axis=0)
-    normal /= max(float(np.linalg.norm(normal)), 1e-12)
-    e1 = np.cross(normal, np.eye(3)[int(np.argmin(np.abs(normal)))])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(normal, e1)
-    radii = np.linspace(0.0, REACH * float(np.median(dist)), RINGS + 1)[1:]
-    az = np.linspace(0.0, 2.0 * math.pi, AZIMUTHS, endpoint=False)
+    dist = np.linalg.norm(c2w[:, :3, 3] - centre, axis=1)
+    level = polar_grid(centre, normal, REACH * float(np.median(dist)), RINGS, AZIMUTHS)
     heights = np.linspace(-half, half, HEIGHTS)
-    ring = radii[:, None, None] * (np.cos(az)[None, :, None] * e1
-                                   + np.sin(az)[None, :, None] * e2)        # (R, A, 3)
-    points = (centre + ring[:, :, None] + heights[None, None, :, None] * normal)  # (R, A, H, 3)
+    points = level[:, :, None] + heights[None, None, :, None] * normal       # (R, A, H, 3)
     cost, local = _disagreement(points.reshape(-1, 3), c2w, scaled, prepared,
                                 [_local_contrast(image) for image in prepared])
     cost = cost.reshape(RINGS, AZIMUTHS, HEIGHTS)
@@ -146,7 +152,6 @@ def surface_points(cube: np.ndarray, c2w: np.ndarray, intrinsics: np.ndarray,
     texture = np.take_along_axis(local, best_h[..., None], axis=2)[..., 0]
     with np.errstate(invalid="ignore"):
         surface = np.isfinite(best) & (texture >= MIN_TEXTURE) & (best <= RATIO * texture)
-    level = centre + ring                                                      # (R, A, 3)
     inside = np.all((level >= cube[0]) & (level <= cube[1]), axis=-1)         # (R, A)
     kept = []
     for a in range(AZIMUTHS):
