@@ -19,12 +19,15 @@ from nerfbot.query.render import render_image  # noqa: E402
 from nerfbot.train.runs import load_model  # noqa: E402
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def views_and_runs(description: str):
+    """Parse ``OUT.png DATA:VIEWS RUN [RUN ...] [--names A,B]`` (exits with a usage error on
+    bad input). Returns (args, the dataset, its test-split indices, the VIEWS as ints, the run
+    names, the loaded models in eval mode, the test cameras)."""
+    ap = argparse.ArgumentParser(description=description)
     ap.add_argument("out", help="PNG to write")
     ap.add_argument("data", metavar="DATA:VIEWS", help="dataset folder and test view indices")
     ap.add_argument("runs", nargs="+", help="trained run folders")
-    ap.add_argument("--names", default=None, help="column titles, comma separated")
+    ap.add_argument("--names", default=None, help="run names, comma separated")
     args = ap.parse_args()
     data, _, views = args.data.rpartition(":")
     if not data or not views:
@@ -39,7 +42,11 @@ def main() -> None:
     if len(names) != len(args.runs):
         ap.error(f"--names gives {len(names)} names for {len(args.runs)} runs")
     models = [load_model(r)[0].eval() for r in args.runs]
-    cams = ds.cameras(test)
+    return args, ds, test, rows, names, models, ds.cameras(test)
+
+
+def main() -> None:
+    args, ds, test, rows, names, models, cams = views_and_runs(__doc__.splitlines()[0])
     fig, axes = plt.subplots(len(rows), 1 + len(models), squeeze=False,
                              figsize=(2.6 * (1 + len(models)), 2.7 * len(rows)))
     for i, v in enumerate(rows):

@@ -8,7 +8,8 @@ image and its depth, then for each run its render (titled with the view's PSNR),
 error (0-5 cm, sky pixels left out) and its opacity (0-1; below 1 the learned background
 shows through).
 """
-import argparse
+import sys
+from pathlib import Path
 
 import matplotlib
 
@@ -16,37 +17,19 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from nerfbot.data import load_dataset  # noqa: E402
 from nerfbot.query.render import render_image  # noqa: E402
-from nerfbot.train.runs import load_model  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from compare_renders import views_and_runs  # noqa: E402
 
 #: Depth errors at or above this many metres saturate the error panels.
 ERROR_SCALE_M = 0.05
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("out", help="PNG to write")
-    ap.add_argument("data", metavar="DATA:VIEWS", help="dataset folder and test view indices")
-    ap.add_argument("runs", nargs="+", help="trained run folders")
-    ap.add_argument("--names", default=None, help="run names, comma separated")
-    args = ap.parse_args()
-    data, _, views = args.data.rpartition(":")
-    if not data or not views:
-        ap.error(f"DATA:VIEWS must name a dataset and its test views, got {args.data!r}")
-    ds = load_dataset(data)
-    test = ds.indices("test")
-    rows = [int(v) for v in views.split(",")]
-    if any(not 0 <= v < len(test) for v in rows):
-        ap.error(f"{data}: test views are 0-{len(test) - 1}, got {views}")
+    args, ds, test, rows, names, models, cams = views_and_runs(__doc__.splitlines()[0])
     if any(ds.depths[test[v]] is None for v in rows):
-        ap.error(f"{data}: the test views have no depth")
-    names = args.names.split(",") if args.names else [r.rstrip("/").split("/")[-1]
-                                                       for r in args.runs]
-    if len(names) != len(args.runs):
-        ap.error(f"--names gives {len(names)} names for {len(args.runs)} runs")
-    models = [load_model(r)[0].eval() for r in args.runs]
-    cams = ds.cameras(test)
+        sys.exit(f"{args.data}: the test views have no depth")
     cols = 2 + 3 * len(models)
     fig, axes = plt.subplots(len(rows), cols, squeeze=False,
                              figsize=(1.9 * cols, 2.1 * len(rows)))
