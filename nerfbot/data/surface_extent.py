@@ -10,8 +10,8 @@ different parts of the texture. Sky, a plain wall or a background composited on 
 no texture and say nothing either way.
 
 The probe: the plane through the cube's centre facing the cameras (the mean direction to them)
-on a polar grid out to the cameras' median distance, each grid point swept along the normal
-over the cube's height. At each swept point the cameras that see it (at least
+on a polar grid out to :data:`REACH` times the cameras' median distance, each grid point swept
+along the normal over the cube's height. At each swept point the cameras that see it (at least
 :data:`MIN_VIEWS`) give a colour (images blurred by one pixel, at most :data:`MAX_SIDE` pixels
 wide); their disagreement is the median over the cameras of the L1 distance (RGB in [0, 1],
 summed over channels) to the per-channel median colour, and the texture there the median of
