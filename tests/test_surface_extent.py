@@ -9,7 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from nerfbot.data.bounds import estimate_bounds_with_rule
+from nerfbot.data.bounds import GROUND_MARGIN, estimate_bounds_with_rule
+from nerfbot.data.surface_extent import LEVEL_HEIGHTS, ground_level, probe_views
 from nerfbot.ops.cameras import look_at
 
 SIZE = 48
@@ -29,16 +30,17 @@ def _cameras(n: int = 40):
     return poses, np.tile([f, f, SIZE / 2, SIZE / 2], (n, 1)), np.tile([SIZE, SIZE], (n, 1))
 
 
-def _render(pose: np.ndarray, f: float, half: float, textured: bool) -> np.ndarray:
-    """(SIZE, SIZE, 3) uint8 view of a table top |x|, |y| <= half at z = 0 (a random 10 cm
-    tile texture, or plain grey) under a sky whose colour follows the ray's elevation."""
+def _render(pose: np.ndarray, f: float, half: float, textured: bool,
+            table_z: float = 0.0) -> np.ndarray:
+    """(SIZE, SIZE, 3) uint8 view of a table top |x|, |y| <= half at z = ``table_z`` (a random
+    10 cm tile texture, or plain grey) under a sky whose colour follows the ray's elevation."""
     v, u = np.mgrid[0:SIZE, 0:SIZE] + 0.5
     d_cam = np.stack([(u - SIZE / 2) / f, -(v - SIZE / 2) / f, -np.ones_like(u)], axis=-1)
     d = d_cam @ pose[:3, :3].T
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     o = pose[:3, 3]
     with np.errstate(divide="ignore", invalid="ignore"):
-        t = -o[2] / d[..., 2]
+        t = (table_z - o[2]) / d[..., 2]
     hit = (t > 0) & np.isfinite(t)
     p = o + np.where(hit, t, 0.0)[..., None] * d
     hit &= (np.abs(p[..., 0]) <= half) & (np.abs(p[..., 1]) <= half)
@@ -69,18 +71,40 @@ def test_bounds_grow_to_a_textured_table_beyond_the_cube():
     assert cube_half < 1.0                      # the table reaches beyond the cube ...
     assert np.all(box[1, :2] >= 1.1) and np.all(box[0, :2] <= -1.1)   # ... and the box holds it
     assert np.all(box[1, :2] <= 1.4 + 0.2) and np.all(box[0, :2] >= -1.4 - 0.2)  # not the sky
-    np.testing.assert_allclose(box[:, 2], cube[:, 2])  # the height stays the cube's
+    # The table fills the views: the box's bottom rises to it, less the margin; its top stays.
+    edge = float(cube[1, 2] - cube[0, 2])
+    step = edge / (LEVEL_HEIGHTS - 1)
+    assert cube[0, 2] < -0.5
+    assert -GROUND_MARGIN * edge - step <= box[0, 2] <= -GROUND_MARGIN * edge + step
+    assert box[1, 2] == pytest.approx(cube[1, 2])
+
+
+@pytest.mark.parametrize("table_z", [0.0, 0.25])
+def test_ground_level_finds_the_table_under_the_cube(table_z):
+    poses, intr, _ = _cameras()
+    images = [_render(p, intr[0, 0], 1.4, True, table_z) for p in poses]
+    cube = np.array([[-0.8, -0.8, -0.8], [0.8, 0.8, 0.8]])
+    views = probe_views(poses, intr, images)
+    level = ground_level(cube, np.array([0.0, 0.0, 1.0]), views)
+    assert level is not None
+    assert abs(level - table_z) <= 1.6 / (LEVEL_HEIGHTS - 1) + 1e-9   # within one step
+    plain = [_render(p, intr[0, 0], 1.4, False, table_z) for p in poses]
+    assert ground_level(cube, np.array([0.0, 0.0, 1.0]), probe_views(poses, intr, plain)) is None
 
 
 @pytest.mark.parametrize("half, textured", [(0.5, True), (1.4, False)])
 def test_bounds_stay_near_the_cube_where_the_images_agree_on_no_surface_beyond_it(half,
                                                                                   textured):
     """A table that ends inside the cube (sky beyond it), or a plain one: the cube, grown by
-    at most a few probe rings at the table's edge."""
+    at most a few probe rings at the table's edge (and its bottom raised to the table when
+    those rings show it)."""
     poses, intr, sizes = _cameras()
     cube, _ = estimate_bounds_with_rule(poses, intr, sizes, [None] * len(poses))
     box, rule = _bounds(half, textured)
     assert rule in ("axes", "surface")
+    if box[0, 2] > cube[0, 2]:
+        assert rule == "surface" and -0.2 <= box[0, 2] <= 0.0
+        box[0, 2] = cube[0, 2]
     assert np.all(box[0] <= cube[0]) and np.all(box[1] >= cube[1])
     assert np.all(box[0] >= cube[0] - 0.2) and np.all(box[1] <= cube[1] + 0.2)
     if not textured:

@@ -26,8 +26,11 @@ Camera-based rule (all distances in metres):
    that may reach beyond the cube. With the training images (as :func:`load_dataset` gives
    them), the cube grows over the surface the images agree on around it
    (:mod:`nerfbot.data.surface_extent`, rule "surface"; the cube alone, "axes", when they
-   agree on none). From poses alone, it grows to hold the points of the plane through ``p``
-   facing the cameras, out to their median distance from ``p``, that at least
+   agree on none). Such a surface fills the views, and the cameras see nothing below it: when
+   it also fills the cube's footprint at one level, the box's side away from the cameras
+   moves up to that level, less :data:`GROUND_MARGIN` of the cube's edge
+   (:func:`_on_ground`). From poses alone, it grows to hold the points of the plane through
+   ``p`` facing the cameras, out to their median distance from ``p``, that at least
    :data:`GROUND_COVERAGE` of the cameras see (:func:`_ground_footprint`, rule
    "footprint"). Either box is then no longer a cube.
 
@@ -47,7 +50,7 @@ from typing import Any
 
 import numpy as np
 
-from nerfbot.data.surface_extent import polar_grid, surface_points
+from nerfbot.data.surface_extent import ground_level, polar_grid, probe_views, surface_points
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +63,11 @@ ONE_SIDED = 0.5
 GROUND_COVERAGE = 0.15
 GROUND_RINGS = 40
 GROUND_AZIMUTHS = 48
+#: The ground under the cube (rule "surface"): looked for along the axis nearest the cameras'
+#: facing direction when that is within GROUND_MAX_TILT degrees of it; the box's far side is
+#: put GROUND_MARGIN of the cube's edge below it.
+GROUND_MAX_TILT = 30.0
+GROUND_MARGIN = 0.1
 #: Relative margin added to manifest bounds on every side, per axis, and its floor in metres.
 MANIFEST_PAD_FRACTION = 0.05
 MANIFEST_PAD_MIN = 0.01
@@ -185,6 +193,31 @@ def _grown(box: np.ndarray, points: np.ndarray) -> np.ndarray:
                      np.maximum(box[1], points.max(axis=0))])
 
 
+def _on_ground(box: np.ndarray, cube: np.ndarray, normal: np.ndarray, views) -> np.ndarray:
+    """(2, 3) ``box`` with its side away from the cameras moved up to the ground the images
+    agree on under ``cube`` (:func:`~nerfbot.data.surface_extent.ground_level`), less
+    :data:`GROUND_MARGIN` of the cube's edge; ``box`` unchanged when the facing ``normal`` (3,)
+    is more than :data:`GROUND_MAX_TILT` degrees from every axis or no ground fills the
+    cube's footprint."""
+    k = int(np.argmax(np.abs(normal)))
+    if abs(normal[k]) < math.cos(math.radians(GROUND_MAX_TILT)):
+        return box
+    sign = 1.0 if normal[k] > 0 else -1.0
+    level = ground_level(cube, sign * np.eye(3)[k], views)
+    if level is None:
+        return box
+    ground = 0.5 * (cube[0, k] + cube[1, k]) + sign * level
+    margin = GROUND_MARGIN * float(np.max(cube[1] - cube[0]))
+    box = box.copy()
+    if sign > 0:
+        box[0, k] = max(box[0, k], ground - margin)
+    else:
+        box[1, k] = min(box[1, k], ground + margin)
+    log.info("the images agree on a surface at %s = %.3g m filling the views: the bounds end "
+             "%.3g m beyond it", "xyz"[k], ground, margin)
+    return box
+
+
 def estimate_bounds_with_rule(c2w, intrinsics, sizes, images=None) -> tuple[np.ndarray, str]:
     """:func:`estimate_bounds_from_cameras` plus the rule used: "axes", "surface",
     "footprint" or "look_points"."""
@@ -213,10 +246,10 @@ def estimate_bounds_with_rule(c2w, intrinsics, sizes, images=None) -> tuple[np.n
                 used = [i for i, image in enumerate(images) if image is not None]
                 normal = _facing_normal(centre, origins[used]) if len(used) >= 2 else None
                 if normal is not None:
-                    surface = surface_points(cube, normal, c2w[used], intrinsics[used],
-                                             [images[i] for i in used])
+                    views = probe_views(c2w[used], intrinsics[used], [images[i] for i in used])
+                    surface = surface_points(cube, normal, views)
                     if surface is not None:
-                        return _grown(cube, surface), "surface"
+                        return _on_ground(_grown(cube, surface), cube, normal, views), "surface"
                 return cube, "axes"
             ground = _ground_footprint(centre, c2w, intrinsics, sizes)
             if ground is None:
