@@ -18,10 +18,10 @@ FOV = 40.0
 RADIUS = 2.0
 
 
-def _cameras(n: int = 40):
+def _cameras(n: int = 40, below: bool = False):
     """(n, 4, 4) poses on a hemisphere of RADIUS around the origin at 25-65 degrees
-    elevation, (n, 4) intrinsics, (n, 2) sizes."""
-    elevations = np.radians([25.0, 38.0, 52.0, 65.0])
+    elevation (below the origin with ``below``), (n, 4) intrinsics, (n, 2) sizes."""
+    elevations = np.radians([25.0, 38.0, 52.0, 65.0]) * (-1.0 if below else 1.0)
     eyes = [RADIUS * np.array([math.cos(elevations[k % 4]) * math.cos(2 * math.pi * k / n),
                                math.cos(elevations[k % 4]) * math.sin(2 * math.pi * k / n),
                                math.sin(elevations[k % 4])]) for k in range(n)]
@@ -77,6 +77,20 @@ def test_bounds_grow_to_a_textured_table_beyond_the_cube():
     assert cube[0, 2] < -0.5
     assert -GROUND_MARGIN * edge - step <= box[0, 2] <= -GROUND_MARGIN * edge + step
     assert box[1, 2] == pytest.approx(cube[1, 2])
+
+
+def test_cameras_below_a_surface_bring_the_box_top_down_to_it():
+    """A ceiling seen from below: the box's side away from the cameras is its top."""
+    poses, intr, sizes = _cameras(below=True)
+    cube, _ = estimate_bounds_with_rule(poses, intr, sizes, [None] * len(poses))
+    images = [_render(p, intr[0, 0], 1.4, True) for p in poses]
+    box, rule = estimate_bounds_with_rule(poses, intr, sizes, images)
+    assert rule == "surface"
+    edge = float(cube[1, 2] - cube[0, 2])
+    step = edge / (LEVEL_HEIGHTS - 1)
+    assert cube[1, 2] > 0.5
+    assert GROUND_MARGIN * edge - step <= box[1, 2] <= GROUND_MARGIN * edge + step
+    assert box[0, 2] == pytest.approx(cube[0, 2])
 
 
 @pytest.mark.parametrize("table_z", [0.0, 0.25])

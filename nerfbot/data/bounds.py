@@ -279,7 +279,8 @@ def estimate_bounds_from_cameras(c2w, intrinsics, sizes, images=None) -> np.ndar
 
     Returns:
         (2, 3) float64 min / max corners of a box (a cube unless the surface or the ground
-        footprint grew it), metres.
+        footprint grew it, or the surface's level raised its side away from the cameras),
+        metres.
     """
     return estimate_bounds_with_rule(c2w, intrinsics, sizes, images)[0]
 
