@@ -21,8 +21,9 @@ the disagreement at most :data:`RATIO` times the texture. Walking outward from t
 each direction, the surface's points are kept until :data:`GAP` grid rings in a row show none.
 
 The same test, swept finer over the cube's own footprint (:func:`ground_level`), finds the
-level of that surface under the cube: the height most of the footprint's columns agree on.
-Cameras that look down on a surface filling their views see nothing below it.
+level of that surface under the cube: the lowest height at which many of the footprint's
+columns show a surface. Cameras that look down on a surface filling their views see nothing
+below it.
 """
 
 from __future__ import annotations
