@@ -31,9 +31,11 @@ def _cameras(n: int = 40, below: bool = False):
 
 
 def _render(pose: np.ndarray, f: float, half: float, textured: bool,
-            table_z: float = 0.0) -> np.ndarray:
+            table_z: float = 0.0, hole: tuple[float, float] | None = None) -> np.ndarray:
     """(SIZE, SIZE, 3) uint8 view of a table top |x|, |y| <= half at z = ``table_z`` (a random
-    10 cm tile texture, or plain grey) under a sky whose colour follows the ray's elevation."""
+    10 cm tile texture, or plain grey) under a sky whose colour follows the ray's elevation.
+    ``hole`` (h, depth): the table has a hole |x|, |y| < h through which a floor of the same
+    texture shows, ``depth`` metres below the table."""
     v, u = np.mgrid[0:SIZE, 0:SIZE] + 0.5
     d_cam = np.stack([(u - SIZE / 2) / f, -(v - SIZE / 2) / f, -np.ones_like(u)], axis=-1)
     d = d_cam @ pose[:3, :3].T
@@ -44,6 +46,11 @@ def _render(pose: np.ndarray, f: float, half: float, textured: bool,
     hit = (t > 0) & np.isfinite(t)
     p = o + np.where(hit, t, 0.0)[..., None] * d
     hit &= (np.abs(p[..., 0]) <= half) & (np.abs(p[..., 1]) <= half)
+    if hole is not None:
+        through = hit & (np.abs(p[..., 0]) < hole[0]) & (np.abs(p[..., 1]) < hole[0])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_floor = (table_z - hole[1] - o[2]) / d[..., 2]
+        p = np.where(through[..., None], o + t_floor[..., None] * d, p)
     sky = np.stack([0.6 + 0.05 * d[..., 2], 0.75 + 0.03 * d[..., 2], np.full(d.shape[:2], 0.95)],
                    axis=-1)
     if textured:
@@ -91,6 +98,19 @@ def test_cameras_below_a_surface_bring_the_box_top_down_to_it():
     assert cube[1, 2] > 0.5
     assert GROUND_MARGIN * edge - step <= box[1, 2] <= GROUND_MARGIN * edge + step
     assert box[0, 2] == pytest.approx(cube[0, 2])
+
+
+def test_ground_level_keeps_a_floor_seen_through_a_hole_in_the_table():
+    """A lower surface covering a third of the footprint (a floor under a hole, a recessed
+    bin) sets the level: nothing the cameras see is cut away."""
+    poses, intr, sizes = _cameras()
+    images = [_render(p, intr[0, 0], 1.4, True, hole=(0.45, 0.3)) for p in poses]
+    cube = np.array([[-0.8, -0.8, -0.8], [0.8, 0.8, 0.8]])
+    level = ground_level(cube, np.array([0.0, 0.0, 1.0]), probe_views(poses, intr, images))
+    assert level is not None
+    assert abs(level + 0.3) <= 1.6 / (LEVEL_HEIGHTS - 1) + 1e-9
+    box, rule = estimate_bounds_with_rule(poses, intr, sizes, images)
+    assert rule == "surface" and box[0, 2] < -0.3
 
 
 @pytest.mark.parametrize("table_z", [0.0, 0.25])

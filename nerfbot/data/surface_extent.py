@@ -55,12 +55,13 @@ GAP = 2
 #: LEVEL_COLUMNS columns, each swept at LEVEL_HEIGHTS heights across the cube's height.
 LEVEL_COLUMNS = 24
 LEVEL_HEIGHTS = 48
-#: The ground is the lowest height at which at least LEVEL_PEAK times as many columns show a
-#: surface as at the most common height (a recessed bin floor forms such a second peak), and
-#: the columns within one height step of it are at least LEVEL_COVERAGE of all columns (the
-#: surface fills the footprint, as a table that fills the views does: 32-65 % on the zoo's
-#: frame-filling seeds, 22 % on one under a camera-following headlight; 2 % on the tabletop,
-#: whose table ends inside the cube).
+#: A surface fills the footprint when the columns within one height step of the most common
+#: height are at least LEVEL_COVERAGE of all columns (as a table that fills the views does:
+#: 32-65 % on the zoo's frame-filling seeds, 22 % on one under a camera-following headlight;
+#: 2 % on the tabletop, whose table ends inside the cube). The ground is then the lowest
+#: height at which at least LEVEL_PEAK times as many columns show a surface as at the most
+#: common one: a floor seen through a hole, a recessed bin's bottom, forms such a peak when
+#: it covers about a quarter of the footprint or more (a smaller one is cut away).
 LEVEL_PEAK = 0.3
 LEVEL_COVERAGE = 0.2
 #: Images are resized so their larger side is at most this many pixels before probing.
@@ -211,9 +212,9 @@ def surface_points(cube: np.ndarray, normal: np.ndarray,
 
 
 def ground_level(cube: np.ndarray, axis: np.ndarray, views: ProbeViews) -> float | None:
-    """Where the surface under the cube lies, in metres along ``axis`` from the cube's centre,
-    or None when no surface fills the cube's footprint (:data:`LEVEL_PEAK`,
-    :data:`LEVEL_COVERAGE`).
+    """Where the lowest surface under the cube lies, in metres along ``axis`` from the cube's
+    centre, or None when no surface fills the cube's footprint (:data:`LEVEL_COVERAGE`,
+    :data:`LEVEL_PEAK`).
 
     The footprint's columns (:data:`LEVEL_COLUMNS` squared) are swept along ``axis`` (3,),
     the unit direction the surface faces, at :data:`LEVEL_HEIGHTS` heights across the cube's
@@ -231,9 +232,7 @@ def ground_level(cube: np.ndarray, axis: np.ndarray, views: ProbeViews) -> float
               + heights[None, None, :, None] * axis)                        # (C, C, H, 3)
     best_h, surface = _sweep(points, views)                                  # (C, C)
     counts = np.bincount(best_h[surface], minlength=LEVEL_HEIGHTS)
-    if counts.max() == 0:
+    mode = int(np.argmax(counts))
+    if counts[max(mode - 1, 0):mode + 2].sum() < LEVEL_COVERAGE * best_h.size:
         return None
-    lowest = int(np.flatnonzero(counts >= LEVEL_PEAK * counts.max())[0])
-    if counts[max(lowest - 1, 0):lowest + 2].sum() < LEVEL_COVERAGE * best_h.size:
-        return None
-    return float(heights[lowest])
+    return float(heights[int(np.flatnonzero(counts >= LEVEL_PEAK * counts[mode])[0])])
