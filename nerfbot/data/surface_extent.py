@@ -125,14 +125,19 @@ def _disagreement(points: np.ndarray, c2w: np.ndarray, intrinsics: np.ndarray,
     return cost, local
 
 
+def _plane_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two (3,) unit vectors that span the plane orthogonal to the unit ``normal`` (3,)."""
+    e1 = np.cross(normal, np.eye(3)[int(np.argmin(np.abs(normal)))])
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(normal, e1)
+
+
 def polar_grid(centre: np.ndarray, normal: np.ndarray, radius: float, rings: int,
                azimuths: int) -> np.ndarray:
     """(rings, azimuths, 3) points, metres, of the plane through ``centre`` (3,) with unit
     ``normal`` (3,): ``rings`` radii evenly out to ``radius`` (0 excluded) x ``azimuths``
     directions."""
-    e1 = np.cross(normal, np.eye(3)[int(np.argmin(np.abs(normal)))])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(normal, e1)
+    e1, e2 = _plane_basis(normal)
     radii = np.linspace(0.0, radius, rings + 1)[1:]
     az = np.linspace(0.0, 2.0 * math.pi, azimuths, endpoint=False)
     return centre + radii[:, None, None] * (np.cos(az)[None, :, None] * e1
@@ -223,9 +228,7 @@ def ground_level(cube: np.ndarray, axis: np.ndarray, views: ProbeViews) -> float
     """
     centre = 0.5 * (cube[0] + cube[1])
     half = 0.5 * float(np.max(cube[1] - cube[0]))
-    e1 = np.cross(axis, np.eye(3)[int(np.argmin(np.abs(axis)))])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(axis, e1)
+    e1, e2 = _plane_basis(axis)
     across = np.linspace(-half, half, LEVEL_COLUMNS)
     heights = np.linspace(-half, half, LEVEL_HEIGHTS)
     points = (centre + across[:, None, None, None] * e1 + across[None, :, None, None] * e2
