@@ -233,6 +233,10 @@ def main(argv=None) -> int:
                         metavar="KEY=VALUE",
                         help="field option of the training runs (repeatable), added to "
                         + ", ".join(f"{k}={v}" for k, v in NAV_FIELD_OPTIONS.items()))
+    parser.add_argument("--sensor-depth-weight", type=float, default=0.0, metavar="W",
+                        help="train the fields with depth supervision from the capture's "
+                             "simulated depth sensor, weight W (an RGB-D robot's map; default "
+                             "0: images only)")
     parser.add_argument("--estimator-option", action="append", default=[], type=parse_option,
                         metavar="[NAME.]KEY=VALUE",
                         help="setting of the estimators' configs (repeatable): NAME.KEY for one "
@@ -253,12 +257,15 @@ def main(argv=None) -> int:
             parser.error(f"--{name.replace('_', '-')} must be at least 1")
     if not 0.0 <= args.capture_robot_views <= 1.0:
         parser.error(f"--capture-robot-views must be in [0, 1], got {args.capture_robot_views}")
+    if not 0.0 <= args.sensor_depth_weight < float("inf"):
+        parser.error(f"--sensor-depth-weight must be at least 0, got {args.sensor_depth_weight}")
     if args.out.exists() and any(args.out.iterdir()):
         parser.error(f"--out {args.out} is not empty: choose a new folder")
     cfg = NavTaskConfig(scene=args.scene, scenes=args.scenes, seed=args.seed,
                         train_steps=args.train_steps, device=args.device,
                         capture_robot_views=args.capture_robot_views,
                         train_options={**NAV_FIELD_OPTIONS, **dict(args.option)},
+                        sensor_depth_weight=args.sensor_depth_weight,
                         progress=not args.no_progress)
     if args.cache is not None:
         cfg = replace(cfg, cache=args.cache)

@@ -119,6 +119,10 @@ class NavTaskConfig:
     train_options: dict = field(default_factory=lambda: dict(NAV_FIELD_OPTIONS))
     """Field options of the training runs (``--option`` adds to or overrides
     :data:`NAV_FIELD_OPTIONS`)."""
+    sensor_depth_weight: float = 0.0
+    """Depth supervision of the training runs from the capture's simulated depth sensor
+    (``nerfbot train --depth-weight W --depth-from sensor_depth``: mapping with an RGB-D
+    camera); 0: images only."""
     map_cell: float = 0.05
     threshold: Optional[float] = None
     """Obstacle density threshold of a field map, 1/m (None:
@@ -240,13 +244,16 @@ def ensure_trained(cfg: NavTaskConfig, seed: int) -> Path:
     defaults, so a cached run never stands for other options after the defaults change)."""
     data = ensure_capture(cfg, seed)
     opts = "".join(f"-{k}={v}" for k, v in sorted(cfg.train_options.items()))
+    if cfg.sensor_depth_weight > 0:
+        opts += f"-sensor_depth_weight={cfg.sensor_depth_weight}"
     run = scene_folder(cfg, seed) / f"{cfg.method}-{cfg.train_steps}steps{opts}"
     done = run / "done.json"
     if done.exists():
         return run
     trainer = Trainer(load_dataset(data), run, TrainConfig(
         method=cfg.method, max_steps=cfg.train_steps, seed=seed, options=dict(cfg.train_options),
-        device=cfg.device, progress=cfg.progress))
+        depth_weight=cfg.sensor_depth_weight, depth_from="sensor_depth", device=cfg.device,
+        progress=cfg.progress))
     if (run / CHECKPOINT).exists():
         trainer.load()
     write_json_atomic(done, trainer.train())
@@ -656,6 +663,10 @@ def main(argv=None) -> int:
                         metavar="KEY=VALUE",
                         help="field option of the training runs (repeatable), added to "
                         + ", ".join(f"{k}={v}" for k, v in NAV_FIELD_OPTIONS.items()))
+    parser.add_argument("--sensor-depth-weight", type=float, default=0.0, metavar="W",
+                        help="train the fields with depth supervision from the capture's "
+                             "simulated depth sensor, weight W (an RGB-D robot's map; default "
+                             "0: images only)")
     parser.add_argument("--threshold", type=float, default=None,
                         help="obstacle density of a field map, 1/m")
     parser.add_argument("--glass-threshold", type=float, default=None,
@@ -685,6 +696,8 @@ def main(argv=None) -> int:
     for name in ("scenes", "train_steps", "capture_views", "capture_size"):
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be at least 1")
+    if not 0.0 <= args.sensor_depth_weight < float("inf"):
+        parser.error(f"--sensor-depth-weight must be at least 0, got {args.sensor_depth_weight}")
     for name in ("threshold", "glass_threshold"):
         value = getattr(args, name)
         if value is not None and not value > 0:
@@ -705,6 +718,7 @@ def main(argv=None) -> int:
                         glass_clearance=args.glass_clearance, glass_halo=args.glass_halo,
                         out=args.out, device=args.device,
                         train_options={**NAV_FIELD_OPTIONS, **dict(args.option)},
+                        sensor_depth_weight=args.sensor_depth_weight,
                         drive=replace(DriveConfig(), gate_distance=args.gate,
                                       gate_angle=DriveConfig.gate_angle if args.gate > 0 else 0.0),
                         progress=not args.no_progress)

@@ -11,6 +11,7 @@ from nerfbot.data import load_dataset
 from nerfbot.data.pixels import depth_valid_mask
 from nerfbot.eval.evaluation import _PooledPSNR, evaluate
 from nerfbot.methods import build_model
+from nerfbot.ops.metrics import depth_errors
 from nerfbot.query.render import render_image
 
 
@@ -57,3 +58,41 @@ def test_depth_spread_is_the_median_spread_over_pixels_with_a_true_depth(tiny_ca
     assert metrics["depth_spread_m"] == pytest.approx(float(np.median(np.concatenate(spreads))))
     # an untrained field is fog: its rays end anywhere over centimetres of their length
     assert metrics["depth_spread_m"] > 0.01
+
+
+def test_depth_errors_relative_to_the_distance():
+    target = np.array([[1.0, 2.0], [4.0, np.nan]])
+    pred = np.array([[1.1, 1.8], [4.0, 3.0]])
+    e = depth_errors(pred, target, np.ones((2, 2), bool))
+    assert e["count"] == 3  # the unknown target is left out
+    assert e["mae"] == pytest.approx((0.1 + 0.2 + 0.0) / 3)
+    assert e["abs_rel"] == pytest.approx((0.1 / 1 + 0.2 / 2 + 0.0) / 3)
+    assert e["bias"] == pytest.approx((0.1 - 0.2 + 0.0) / 3)
+    # a zero distance has no relative error: left out, not a division by zero
+    e = depth_errors(np.array([0.5, 1.5]), np.array([0.0, 1.0]), np.ones(2, bool))
+    assert e["count"] == 1 and e["abs_rel"] == pytest.approx(0.5)
+
+
+def test_wall_depth_is_scored_on_the_pixels_of_the_walls_the_manifest_names(tiny_capture):
+    ds = load_dataset(tiny_capture[0])
+    model = build_model("ngp", ds.aabb, "learned", {"log2_hashmap_size": 12}, 0).eval()
+    assert evaluate(model, ds, "test", max_images=2, with_ssim=False)["depth_abs_rel_walls"] \
+        is None  # the tabletop has no walls
+    # call the table's geoms walls, as a room's manifest names its walls
+    geoms = ds.manifest["geoms"]
+    tables = [g for g, n in geoms.items() if n.startswith("table")]
+    assert tables
+    ds.manifest = {**ds.manifest, "geoms": {g: ("wall_" + n if g in tables else n)
+                                            for g, n in geoms.items()}}
+    metrics = evaluate(model, ds, "test", max_images=2, with_ssim=False)
+    rel, signed, n = 0.0, 0.0, 0
+    for slot, i in enumerate(ds.indices("test")[:2]):
+        z = render_image(model, ds.cameras(ds.indices("test")), slot)["z_depth"]
+        on = depth_valid_mask(ds, i) & np.isin(ds.segmentations[i], [int(g) for g in tables])
+        rel += float((np.abs(z[on] - ds.depths[i][on]) / ds.depths[i][on]).sum())
+        signed += float((z[on] - ds.depths[i][on]).sum())
+        n += int(on.sum())
+    assert n > 0
+    assert metrics["depth_abs_rel_walls"] == pytest.approx(rel / n, rel=1e-5)
+    assert metrics["depth_bias_walls_m"] == pytest.approx(signed / n, rel=1e-5, abs=1e-7)
+    assert metrics["depth_abs_rel_walls"] != pytest.approx(metrics["depth_abs_rel"], rel=1e-3)

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from nerfbot.data import load_dataset
+from nerfbot.data.pixels import PixelBank, depth_valid_mask
 from nerfbot.eval.evaluation import evaluate
 from nerfbot.fields.ngp import NGPField, NGPFieldConfig
 from nerfbot.models.occupancy import scale_gradient
@@ -205,6 +206,37 @@ def test_depth_supervision_uses_valid_depth_and_refuses_datasets_without_it(tiny
         Trainer(ds, tmp_path / "x", TrainConfig(method="ngp", max_steps=1, depth_weight=0.1))
     with pytest.raises(ValueError, match="depth_weight"):
         TrainConfig(method="ngp", max_steps=1, depth_weight=-1.0).validate()
+
+
+def test_depth_supervision_from_a_depth_sensors_reading(tiny_capture):
+    """--depth-from sensor_depth trains on the frames' sensor readings: their gaps (NaN) and
+    points outside the bounds are not supervised, and frames without a reading are refused by
+    the field's name."""
+    ds = load_dataset(tiny_capture[0])
+    train = ds.indices("train")
+    rng = np.random.default_rng(0)
+    ds.sensor_depths = [None] * len(ds)
+    for i in train:
+        reading = ds.depths[i] + rng.normal(0.0, 0.01, ds.depths[i].shape).astype(np.float32)
+        reading[:4] = np.nan                       # the sensor saw nothing in the top rows
+        ds.sensor_depths[i] = reading
+    bank = PixelBank(ds, train)
+    bank.load_depths("sensor_depth")
+    got = bank.depths.reshape(len(train), *ds.depths[train[0]].shape).numpy()
+    truth = np.stack([ds.depths[i] for i in train])
+    inside = np.stack([depth_valid_mask(ds, i, ds.sensor_depths[i]) for i in train])
+    assert np.isnan(got[:, :4]).all() and np.isnan(got[~inside]).all()
+    known = np.isfinite(got)
+    expected = inside.copy()
+    expected[:, :4] = False
+    assert np.array_equal(known, expected) and known.mean() > 0.1
+    assert np.array_equal(got[known], np.stack([ds.sensor_depths[i] for i in train])[known])
+    assert 0 < np.abs(got[known] - truth[known]).mean() < 0.02
+    ds.sensor_depths[train[0]] = None
+    with pytest.raises(ValueError, match="sensor_depth_file_path"):
+        PixelBank(ds, train).load_depths("sensor_depth")
+    with pytest.raises(ValueError, match="depth_from"):
+        TrainConfig(method="ngp", max_steps=1, depth_from="lidar").validate()
 
 
 def _growing_method():

@@ -191,7 +191,7 @@ def cmd_capture(args) -> int:
 #: ``--resume`` those not given come from the saved run (:func:`_follow_saved_config`).
 RUN_FLAGS = {"method": "method", "seed": "seed", "lr": "lr", "option": "options",
              "background": "background", "depth_weight": "depth_weight",
-             "sparse_depth_weight": "sparse_depth_weight",
+             "depth_from": "depth_from", "sparse_depth_weight": "sparse_depth_weight",
              "sparse_depth_robust": "sparse_depth_robust",
              "sparse_depth_until": "sparse_depth_until", "labels": "labels",
              "label_clicks": "label_clicks", "label_weight": "label_weight",
@@ -256,9 +256,10 @@ def _follow_saved_config(args, run: Path, saved: dict) -> dict:
                   error_rays_debias=train.get("error_rays_debias", 1.0),
                   error_tile=train.get("error_tile", 8),
                   sparse_depth_robust=train.get("sparse_depth_robust", 0.0),
+                  depth_from=train.get("depth_from", "depth"),
                   sparse_depth_until=train.get("sparse_depth_until", 1.0))
     checked = set(RUN_FLAGS) if args.config is not None else \
-        {"lr", "depth_weight", "sparse_depth_weight", "sparse_depth_robust",
+        {"lr", "depth_weight", "depth_from", "sparse_depth_weight", "sparse_depth_robust",
          "sparse_depth_until", "label_clicks", "label_weight", "dynamic_rays",
          "dynamic_rays_debias", "error_rays", "error_rays_debias", "error_tile", "eval_at"}
     conflicts = []
@@ -366,7 +367,7 @@ def _flag_train_config(args, method: str, options: dict, max_seconds, background
     return dict(method=method, max_steps=args.max_steps,
                 max_seconds=max_seconds, seed=args.seed, lr=args.lr,
                 options=options, background=background,
-                depth_weight=args.depth_weight,
+                depth_weight=args.depth_weight, depth_from=args.depth_from,
                 sparse_depth_weight=args.sparse_depth_weight,
                 sparse_depth_robust=args.sparse_depth_robust,
                 sparse_depth_until=args.sparse_depth_until,
@@ -1272,6 +1273,11 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
                    help="dense depth supervision from the dataset's depth maps (RGB-D "
                         "captures): weight of the L1 depth error in scene-cube diagonals "
                         "(default 0: RGB only)")
+    p.add_argument("--depth-from", choices=("depth", "sensor_depth"), default="depth",
+                   help="the depth maps --depth-weight trains on: the frames' depth_file_path "
+                        "(a simulator's true depth, or an RGB-D camera's) or "
+                        "sensor_depth_file_path (nerfbot capture --sensor-depth: a simulated "
+                        "depth sensor's noisy, gappy reading); default depth")
     p.add_argument("--sparse-depth-weight", type=float, default=0.0, metavar="W",
                    help="DS-NeRF sparse depth supervision on the structure-from-motion "
                         "keypoints nerfbot colmap writes (frames[].sparse_depth_file_path); "

@@ -167,19 +167,26 @@ class PixelBank:
             total += self.pixels[self.valid.pixel(chunk)].double().sum(0)
         return (total / len(self.valid) / 255.0).float()
 
-    def load_depths(self) -> None:
+    def load_depths(self, source: str = "depth") -> None:
         """Keep the depth of every pixel (for depth supervision), NaN where
-        :func:`~nerfbot.data.pixels.depth_valid_mask` is False (masked pixels included);
-        ValueError naming the frames without depth."""
+        :func:`~nerfbot.data.pixels.depth_valid_mask` is False (masked pixels included) or the
+        map has no reading. ``source``: "depth" (``Dataset.depths``) or "sensor_depth"
+        (``Dataset.sensor_depths``, a simulated sensor's reading). ValueError naming the
+        frames without such a map."""
+        if source not in ("depth", "sensor_depth"):
+            raise ValueError(f"depth source must be 'depth' or 'sensor_depth', got {source!r}")
+        maps_of = self._dataset.depths if source == "depth" else self._dataset.sensor_depths
+        field = "depth_file_path" if source == "depth" else "sensor_depth_file_path"
         missing = [self._dataset.file_paths[i] for i in self._indices
-                   if self._dataset.depths[i] is None]
+                   if i >= len(maps_of) or maps_of[i] is None]
         if missing:
-            raise ValueError(f"{self._dataset.root}: depth supervision needs a depth map for every "
-                             f"training frame; {len(missing)} have none (e.g. {missing[0]})")
+            raise ValueError(f"{self._dataset.root}: depth supervision needs a depth map "
+                             f"(frames[].{field}) for every training frame; {len(missing)} "
+                             f"have none (e.g. {missing[0]})")
         maps = []
         for i in self._indices:
-            d = np.asarray(self._dataset.depths[i], dtype=np.float32).copy()
-            d[~depth_valid_mask(self._dataset, i)] = np.nan
+            d = np.asarray(maps_of[i], dtype=np.float32).copy()
+            d[~depth_valid_mask(self._dataset, i, d)] = np.nan
             maps.append(d.reshape(-1))
         self.depths = torch.from_numpy(np.concatenate(maps)).to(self.device)
 
@@ -468,11 +475,13 @@ class PixelBank:
         return rays, self.pixels[p].float() / 255.0
 
 
-def depth_valid_mask(dataset: Dataset, i: int) -> np.ndarray | None:
-    """(H, W) bool, the pixels of frame ``i`` whose ground-truth depth is finite, whose 3D point
-    lies inside the scene bounds, and which the frame's mask keeps (:meth:`Dataset.valid_mask`);
-    None when the frame has no depth."""
-    depth = dataset.depths[i]
+def depth_valid_mask(dataset: Dataset, i: int, depth: np.ndarray | None = None
+                     ) -> np.ndarray | None:
+    """(H, W) bool, the pixels of frame ``i`` whose depth (``depth``, (H, W) z-depth in metres;
+    default the frame's ground truth) is finite, whose 3D point lies inside the scene bounds,
+    and which the frame's mask keeps (:meth:`Dataset.valid_mask`); None when the frame has no
+    depth."""
+    depth = dataset.depths[i] if depth is None else depth
     if depth is None:
         return None
     cams = dataset.cameras([i])

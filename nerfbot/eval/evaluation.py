@@ -41,6 +41,14 @@ def object_geom_ids(dataset: Dataset) -> np.ndarray | None:
     return np.array([int(g) for g, n in manifest.get("geoms", {}).items() if n in names], np.int32)
 
 
+def wall_geom_ids(dataset: Dataset) -> np.ndarray | None:
+    """Geom ids of the walls the scene manifest names (``wall...``, as the ``room`` scenes and
+    their glass partitions' rooms do), or None when it names none."""
+    geoms = (dataset.manifest or {}).get("geoms", {})
+    ids = [int(g) for g, n in geoms.items() if str(n).startswith("wall")]
+    return np.array(ids, np.int32) if ids else None
+
+
 def downscale_area(image: np.ndarray, width: int, height: int) -> np.ndarray:
     """``image`` (H, W) or (H, W, C) resized to (height, width) by area averaging
     (cv2.INTER_AREA, the multiscale protocol's ground truth), as float32."""
@@ -89,20 +97,28 @@ def eval_indices(dataset: Dataset, split: str, max_images: int | None = None) ->
 
 
 class _DepthErrorSum:
-    """Running absolute / squared depth error over many images."""
+    """Running absolute / squared / relative depth error over many images."""
 
     def __init__(self):
-        self.abs, self.sq, self.n = 0.0, 0.0, 0
+        self.abs, self.sq, self.rel, self.signed, self.n = 0.0, 0.0, 0.0, 0.0, 0
 
     def add(self, pred, target, valid):
         e = depth_errors(pred, target, valid)
         if e["count"]:
             self.abs += e["mae"] * e["count"]
             self.sq += e["rmse"] ** 2 * e["count"]
+            self.rel += e["abs_rel"] * e["count"]
+            self.signed += e["bias"] * e["count"]
             self.n += e["count"]
 
     def mae(self):
         return self.abs / self.n if self.n else None
+
+    def abs_rel(self):
+        return self.rel / self.n if self.n else None
+
+    def bias(self):
+        return self.signed / self.n if self.n else None
 
     def rmse(self):
         return float(np.sqrt(self.sq / self.n)) if self.n else None
@@ -135,11 +151,16 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
     Returns psnr / ssim (means over images); depth_mae_m / depth_rmse_m of the expected z-depth
     over all valid depth pixels (finite and inside the bounds); depth_mae_objects_m /
     depth_rmse_objects_m over the valid pixels of the objects the manifest declares (None without
-    segmentation or objects); median_depth_mae_m / median_depth_mae_objects_m, the same for
-    the median depth (robust at object edges, where the expected depth blends two surfaces);
-    depth_spread_m: the median over the same pixels of how far along its ray the centre ray's
-    weight spreads (:func:`~nerfbot.ops.rendering.depth_spread`): about a marching step on a
-    sharp surface, more where the field is fog;
+    segmentation or objects); depth_abs_rel: over all valid depth pixels, the mean of the
+    expected z-depth's error as a fraction of the true depth; depth_abs_rel_walls,
+    depth_mae_walls_m and depth_bias_walls_m: the same, the MAE and the mean signed error
+    (negative: walls too near) over the pixels of the walls the manifest names
+    (:func:`wall_geom_ids`; None without segmentation or walls); median_depth_mae_m /
+    median_depth_mae_objects_m: the MAEs of the median depth (robust at object edges, where the
+    expected depth blends two surfaces); depth_spread_m: the median over the valid depth pixels
+    of how far along its ray the centre ray's weight spreads
+    (:func:`~nerfbot.ops.rendering.depth_spread`): about a marching step on a sharp surface,
+    more where the field is fog;
     psnr_objects: PSNR pooled over the pixels of those objects, their mask dilated by
     :data:`OBJECT_MASK_DILATION_PX` (in dynamic and articulated scenes the objects are what
     moves, a small part of each image; None without segmentation or objects); psnr_non_sky:
@@ -203,6 +224,8 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
     all_med, obj_med = _DepthErrorSum(), _DepthErrorSum()
     spreads = []
     objects = object_geom_ids(dataset)
+    walls = wall_geom_ids(dataset)
+    wall_px = _DepthErrorSum()
     on_objects_psnr, non_sky_psnr = _PooledPSNR(), _PooledPSNR()
     for slot, i in enumerate(indices):
         cond = None if conds is None else conds[i]
@@ -247,6 +270,9 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
                 on_objects = valid & on_obj
                 obj_px.add(out["z_depth"], depth, on_objects)
                 obj_med.add(out["median_z_depth"], depth, on_objects)
+            if walls is not None and seg is not None:
+                on_walls = downscale_area(np.isin(seg, walls).astype(np.float32), w, h)
+                wall_px.add(out["z_depth"], depth, valid & (on_walls >= 1.0 - 1e-4))
     if not psnrs:
         raise DatasetError(f"{dataset.root}: every pixel of the {len(indices)} '{split}' frame(s) "
                            "is masked out; nothing to evaluate")
@@ -259,6 +285,10 @@ def evaluate(model: Model, dataset: Dataset, split: str = "test", max_images: in
         "depth_rmse_m": all_px.rmse(),
         "depth_mae_objects_m": obj_px.mae(),
         "depth_rmse_objects_m": obj_px.rmse(),
+        "depth_abs_rel": all_px.abs_rel(),
+        "depth_abs_rel_walls": wall_px.abs_rel(),
+        "depth_mae_walls_m": wall_px.mae(),
+        "depth_bias_walls_m": wall_px.bias(),
         "median_depth_mae_m": all_med.mae(),
         "median_depth_mae_objects_m": obj_med.mae(),
         "depth_spread_m": float(np.median(np.concatenate(spreads)))

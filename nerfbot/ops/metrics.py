@@ -72,10 +72,17 @@ def _masked_ssim(p: np.ndarray, t: np.ndarray, valid: np.ndarray) -> float:
 
 
 def depth_errors(pred: np.ndarray, target: np.ndarray, valid: np.ndarray) -> dict:
-    """Absolute depth errors (metres) on ``valid`` pixels: mae, rmse and the pixel count."""
+    """Depth errors on ``valid`` pixels whose target is positive: mae and rmse (metres), bias
+    (the mean of pred - target, metres: negative when the surfaces come out too near), abs_rel
+    (the mean of |pred - target| / target, the error as a fraction of the distance) and the
+    pixel count."""
+    target = np.asarray(target, np.float64)
     v = np.asarray(valid, bool) & np.isfinite(target) & np.isfinite(pred)
+    v[v] = target[v] > 0
     if not v.any():
-        return {"mae": float("nan"), "rmse": float("nan"), "count": 0}
-    err = np.asarray(pred, np.float64)[v] - np.asarray(target, np.float64)[v]
+        return {"mae": float("nan"), "rmse": float("nan"), "bias": float("nan"),
+                "abs_rel": float("nan"), "count": 0}
+    err = np.asarray(pred, np.float64)[v] - target[v]
     return {"mae": float(np.abs(err).mean()), "rmse": float(np.sqrt((err ** 2).mean())),
+            "bias": float(err.mean()), "abs_rel": float((np.abs(err) / target[v]).mean()),
             "count": int(v.sum())}

@@ -44,6 +44,10 @@ class TrainConfig:
     """Dense depth supervision (for RGB-D captures): weight of the L1 error of the rendered
     expected z-depth against the dataset's depth maps, in units of the scene cube's diagonal,
     on training pixels whose depth is finite and inside the bounds. 0 = RGB only."""
+    depth_from: str = "depth"
+    """The depth maps ``depth_weight`` trains on: "depth" (the frames' ``depth_file_path``: a
+    simulator's true depth, or an RGB-D camera's) or "sensor_depth" (``sensor_depth_file_path``:
+    a simulated depth sensor's reading, :mod:`sims.sensor`)."""
     sparse_depth_weight: float = 0.0
     """DS-NeRF's sparse depth supervision: weight of
     :func:`~nerfbot.ops.losses.keypoint_depth_loss` on the training frames' keypoints
@@ -127,6 +131,9 @@ class TrainConfig:
             raise ValueError(f"lr must be positive and finite, got {self.lr}")
         if not 0.0 <= self.depth_weight < math.inf:
             raise ValueError(f"depth_weight must be >= 0 and finite, got {self.depth_weight}")
+        if self.depth_from not in ("depth", "sensor_depth"):
+            raise ValueError(f"depth_from must be 'depth' or 'sensor_depth', got "
+                             f"{self.depth_from!r}")
         if not 0.0 <= self.sparse_depth_weight < math.inf:
             raise ValueError(f"sparse_depth_weight must be >= 0 and finite, got "
                              f"{self.sparse_depth_weight}")

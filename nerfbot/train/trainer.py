@@ -217,7 +217,7 @@ class Trainer:
                      "(%d tiles of %d px)", 100 * config.error_rays, len(self.bank.error_map),
                      config.error_tile)
         if config.depth_weight > 0:
-            self.bank.load_depths()
+            self.bank.load_depths(config.depth_from)
         if config.labels:
             self._load_labels()
         if config.sparse_depth_weight > 0:
