@@ -4,6 +4,7 @@ command line's errors."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -55,6 +56,7 @@ def test_summary_rates_and_plot(tmp_path):
     (["--views", "0"], "views"),
     (["--estimator-option", "magic=1"], "estimator-option magic: no selected estimator"),
     (["--estimator-option", "wide.rays=1"], "wide has no ['rays']"),
+    (["--sensor-depth-weight", "-1"], "--sensor-depth-weight must be at least 0"),
 ])
 def test_command_line_errors(args, message, tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_info:
@@ -109,3 +111,19 @@ def test_navigation_capture_mixes_the_rooms_rig_and_the_robots_camera(tmp_path):
         np.testing.assert_allclose(c2w, expected, atol=1e-6)
     rig_heights = [p[2, 3] for p in train if abs(p[2, 3] - robot_height) >= 1e-6]
     assert len(rig_heights) == 4 and all(0.4 <= z <= 1.6 for z in rig_heights)
+
+
+def test_navigation_fields_train_on_the_depth_sensor_when_asked(tmp_path):
+    """--sensor-depth-weight: the field trains with --depth-from sensor_depth, cached in a
+    folder of its own beside the images-only field's."""
+    from tasks.navigate import ensure_trained
+
+    cfg = NavTaskConfig(capture_size=32, capture_views=4, capture_test_views=1, train_steps=2,
+                        cache=tmp_path, progress=False, sensor_depth_weight=0.1)
+    run = ensure_trained(cfg, 0)
+    assert run.name.endswith("-sensor_depth_weight=0.1")
+    train = json.loads((run / "config.json").read_text())["train"]
+    assert train["depth_weight"] == 0.1 and train["depth_from"] == "sensor_depth"
+    plain = ensure_trained(replace(cfg, sensor_depth_weight=0.0), 0)
+    assert plain != run and plain.parent == run.parent
+    assert json.loads((plain / "config.json").read_text())["train"]["depth_weight"] == 0.0
