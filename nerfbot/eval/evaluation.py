@@ -42,8 +42,8 @@ def object_geom_ids(dataset: Dataset) -> np.ndarray | None:
 
 
 def wall_geom_ids(dataset: Dataset) -> np.ndarray | None:
-    """Geom ids of the walls the scene manifest names (``wall...``, as the ``room`` scenes and
-    their glass partitions' rooms do), or None when it names none."""
+    """Geom ids of the walls the scene manifest names (names starting with ``wall``, as the
+    ``room`` and ``room_glass`` scenes name theirs), or None when it names none."""
     geoms = (dataset.manifest or {}).get("geoms", {})
     ids = [int(g) for g, n in geoms.items() if str(n).startswith("wall")]
     return np.array(ids, np.int32) if ids else None
