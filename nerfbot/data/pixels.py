@@ -76,6 +76,11 @@ class ValidPixels:
         return rank.long() + torch.searchsorted(self.skip, r, right=True)
 
 
+#: Where depth supervision comes from (:meth:`PixelBank.load_depths`): each frame's field of
+#: that name, ``depth_file_path`` or ``sensor_depth_file_path``.
+DEPTH_SOURCES = {"depth": "depth_file_path", "sensor_depth": "sensor_depth_file_path"}
+
+
 class PixelBank:
     """All pixels of a set of frames, for drawing random training rays.
 
@@ -173,10 +178,11 @@ class PixelBank:
         map has no reading. ``source``: "depth" (``Dataset.depths``) or "sensor_depth"
         (``Dataset.sensor_depths``, a simulated sensor's reading). ValueError naming the
         frames without such a map."""
-        if source not in ("depth", "sensor_depth"):
-            raise ValueError(f"depth source must be 'depth' or 'sensor_depth', got {source!r}")
+        if source not in DEPTH_SOURCES:
+            raise ValueError(f"depth source must be one of {sorted(DEPTH_SOURCES)}, got "
+                             f"{source!r}")
         maps_of = self._dataset.depths if source == "depth" else self._dataset.sensor_depths
-        field = "depth_file_path" if source == "depth" else "sensor_depth_file_path"
+        field = DEPTH_SOURCES[source]
         missing = [self._dataset.file_paths[i] for i in self._indices
                    if i >= len(maps_of) or maps_of[i] is None]
         if missing:

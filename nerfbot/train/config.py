@@ -8,6 +8,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Optional
 
+from nerfbot.data.pixels import DEPTH_SOURCES
 from nerfbot.methods import get_method
 
 
@@ -131,8 +132,8 @@ class TrainConfig:
             raise ValueError(f"lr must be positive and finite, got {self.lr}")
         if not 0.0 <= self.depth_weight < math.inf:
             raise ValueError(f"depth_weight must be >= 0 and finite, got {self.depth_weight}")
-        if self.depth_from not in ("depth", "sensor_depth"):
-            raise ValueError(f"depth_from must be 'depth' or 'sensor_depth', got "
+        if self.depth_from not in DEPTH_SOURCES:
+            raise ValueError(f"depth_from must be one of {sorted(DEPTH_SOURCES)}, got "
                              f"{self.depth_from!r}")
         if not 0.0 <= self.sparse_depth_weight < math.inf:
             raise ValueError(f"sparse_depth_weight must be >= 0 and finite, got "
