@@ -165,6 +165,9 @@ def test_sfm_registers_a_simulated_scene_with_small_pose_errors(textured_capture
     report = poses_from_images(dataset_input(textured_capture), out,
                                SfmOptions(threads=1), progress=False)
     assert report["registered"] >= 26   # of 28
+    # posed from the features without a twin in their own image, refined with all of them
+    assert 0 < report["features"]["kept"] < report["features"]["features"]
+    assert report["seconds"]["all_features"] > 0
     errors = report["pose_errors"]
     assert errors["rotation_deg_median"] < 0.5
     assert errors["translation_percent_median"] < 1.0
@@ -268,6 +271,10 @@ def test_nerfbot_colmap_on_plain_images_orients_up_and_refuses_an_existing_folde
     assert posed.intrinsics[0, 0] == pytest.approx(truth.intrinsics[0, 0] / 2, rel=0.05)
     assert nerfbot_main(["colmap", str(images), "--out", str(out), "--no-progress"]) == 2
     assert "not an empty folder" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        nerfbot_main(["colmap", str(images), "--out", str(tmp_path / "other"),
+                      "--drop-repeated", "3"])
+    assert "--drop-repeated: expected a number from 0 to 2, got '3'" in capsys.readouterr().err
 
 
 def test_images_input_needs_two_images(tmp_path):
@@ -288,3 +295,66 @@ def test_a_failed_reconstruction_leaves_no_folder_behind(tmp_path, capsys):
     out.mkdir()   # an empty folder the user made stays, empty
     assert nerfbot_main(["colmap", str(images), "--out", str(out), "--no-progress"]) == 2
     assert out.is_dir() and not any(out.iterdir())
+
+
+def test_a_descriptor_with_a_distant_twin_in_its_own_image_is_repeated():
+    from nerfbot.sfm.repeats import MIN_SEPARATION_PX, nearest_twin_distance
+
+    rng = np.random.default_rng(0)
+    tile, unique, other = (rng.integers(0, 255, 128) for _ in range(3))
+    xy = np.array([[10, 10], [200, 10], [10, 200], [100, 100],
+                   [300, 300], [300 + MIN_SEPARATION_PX / 2, 300]], np.float32)
+    descriptors = np.stack([tile, tile + 1, 2 * tile, unique, other, other])
+    d = nearest_twin_distance(xy, descriptors)
+    assert d[:3].max() < 0.02            # three copies of one patch (at any contrast)
+    assert d[3] > 0.3                    # a patch seen once
+    assert d[4] == d[5] == pytest.approx(d[4])
+    assert d[4] > 0.3                    # one detection reported twice is not a repeat
+    assert nearest_twin_distance(xy[:1], descriptors[:1])[0] == 2.0
+    with pytest.raises(ValueError, match="6 keypoints but 5"):
+        nearest_twin_distance(xy, descriptors[:5])
+
+
+def test_features_of_a_tiled_texture_are_dropped_and_a_unique_patch_keeps_its_own(tmp_path):
+    from nerfbot.sfm.repeats import drop_repeated_features
+
+    rng = np.random.default_rng(1)
+    def texture(size):
+        noise = cv2.GaussianBlur(rng.random((size, size)).astype(np.float32), (0, 0), 2.0)
+        return cv2.normalize(noise, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    image = np.tile(texture(96), (4, 4))         # one tile repeated 4 x 4 times, 384 px
+    image[96:192, 96:192] = texture(96)          # but one tile is unlike the others
+    (tmp_path / "images").mkdir()
+    cv2.imwrite(str(tmp_path / "images" / "a.png"), image)
+    database = tmp_path / "database.db"
+    pycolmap.extract_features(database, tmp_path / "images", device=pycolmap.Device.cpu)
+    stats = drop_repeated_features(database, 0.3)
+    db = pycolmap.Database.open(str(database))
+    try:
+        image_id = db.read_all_images()[0].image_id
+        kept = db.read_keypoints(image_id)[:, :2]
+        assert len(db.read_descriptors(image_id).data) == len(kept) == stats["kept"]
+    finally:
+        db.close()
+    assert stats["features"] > 300 and 0 < stats["kept"] < 0.4 * stats["features"]
+    inside = ((kept >= 96 - 4) & (kept < 192 + 4)).all(1)
+    # the unique tile is 1/16 of the image and holds most of what is kept
+    assert inside.mean() > 0.5, (inside.mean(), stats)
+
+
+def test_poses_from_the_distinct_features_are_refined_with_every_feature(textured_capture,
+                                                                         tmp_path):
+    sfm_input = dataset_input(textured_capture)
+    results = {every: run_sfm(sfm_input.root, sfm_input.names, tmp_path / f"every-{every}",
+                              sfm_input.camera,
+                              SfmOptions(threads=1, mapper_runs=1, refine_all_features=every),
+                              progress=False)
+               for every in (False, True)}
+    first, second = results[False], results[True]
+    assert first.features == second.features and first.features["kept"] < \
+        first.features["features"]
+    assert "all_features" in second.seconds and "all_features" not in first.seconds
+    assert len(second.registered) >= len(first.registered) - 1 >= 25
+    # the features dropped as repeats come back as points once the poses are known
+    assert second.reconstruction.num_points3D() > 1.3 * first.reconstruction.num_points3D()
+    assert second.reconstruction.compute_mean_reprojection_error() < 1.0

@@ -2,6 +2,7 @@
 
 usage: python docs/benchmarks/colmap_poses.py WORK [--scenes tabletop,glassware] [--size 1024]
                                               [--downscale 8] [--seconds 180] [--method ngp]
+                                              [--colmap-args="--no-refine-all-features"]
 
 For each scene:
 
@@ -67,6 +68,9 @@ def main() -> None:
     ap.add_argument("--downscale", type=int, default=8)
     ap.add_argument("--seconds", type=float, default=180.0)
     ap.add_argument("--method", default="ngp")
+    ap.add_argument("--colmap-args", default="",
+                    help="more options of nerfbot colmap, one string after '=', e.g. "
+                         "--colmap-args=\"--drop-repeated 0\"")
     args = ap.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     results = {}
@@ -78,7 +82,7 @@ def main() -> None:
         sfm = args.work / f"{scene}-sfm"
         if not (sfm / "sfm_report.json").exists():
             run(NERFBOT + ["colmap", capture, "--out", sfm, "--downscale", args.downscale,
-                           "--no-progress"])
+                           "--no-progress", *args.colmap_args.split()])
         report = json.loads((sfm / "sfm_report.json").read_text())
         twin = args.work / f"{scene}-true"
         if not twin.exists():

@@ -118,6 +118,8 @@ _positive_float = _number(float, lambda v: 0.0 < v < math.inf, "a positive finit
 #: A number >= 0, ``inf`` allowed (a cadence that never comes).
 _non_negative_float = _number(float, lambda v: v >= 0.0, "a number >= 0")
 _fraction = _number(float, lambda v: 0.0 <= v <= 1.0, "a number in [0, 1]")
+#: A distance between unit vectors.
+_unit_distance = _number(float, lambda v: 0.0 <= v <= 2.0, "a number from 0 to 2")
 #: A time in [0, 1] (the span of a dynamic capture).
 _unit_time = _number(float, lambda v: 0.0 <= v <= 1.0, "a time in [0, 1]")
 #: A TCP port; 0 lets the system pick a free one.
@@ -968,7 +970,7 @@ def cmd_colmap(args) -> int:
     from nerfbot.data.readers import is_dataset_folder
     from nerfbot.sfm.dataset import (check_new_folder, dataset_input, images_input,
                                      poses_from_images)
-    from nerfbot.sfm.pipeline import SfmOptions
+    from nerfbot.sfm.pipeline import DROP_REPEATED, SfmOptions
 
     source, out = Path(args.input), Path(args.out)
     if not source.is_dir():
@@ -1000,7 +1002,10 @@ def cmd_colmap(args) -> int:
     options = SfmOptions(matcher=args.matcher, max_reproj_error_px=args.max_error,
                          refine_rounds=args.refine_rounds, seed=args.seed,
                          guided_matching=not args.no_guided_matching,
-                         mapper_runs=args.mapper_runs)
+                         mapper_runs=args.mapper_runs,
+                         refine_all_features=not args.no_refine_all_features,
+                         drop_repeated=(args.drop_repeated if args.drop_repeated is not None
+                                        else 0.0 if args.known_poses else DROP_REPEATED))
     report = poses_from_images(sfm_input, out, options, downscale=args.downscale,
                                baseline=baseline, known_poses=args.known_poses,
                                progress=not args.no_progress)
@@ -1591,6 +1596,14 @@ def build_parser(eager: bool = False) -> argparse.ArgumentParser:
                    help="incremental mapping runs from N seeds; the model that explains the "
                         "most verified matches is kept (default 2; repeated texture can fold "
                         "a run's model)")
+    p.add_argument("--drop-repeated", type=_unit_distance, default=None, metavar="D",
+                   help="drop features whose SIFT descriptor has a twin in its own image "
+                        "closer than D (unit-descriptor distance, 0-2; 0 keeps all): a texture "
+                        "repeated within a view matches its wrong copy in others (default "
+                        "0.4; 0 with --known-poses)")
+    p.add_argument("--no-refine-all-features", action="store_true",
+                   help="keep the poses found from the distinct features (default: match every "
+                        "feature of the verified pairs again and bundle-adjust with them)")
     p.add_argument("--focal", type=_positive_float, default=None, metavar="PX",
                    help="images: known focal length in pixels (square pixels, centred); "
                         "default: estimated")

@@ -21,7 +21,12 @@ Output layout::
     OUT/sparse_depth/...       per image: the sparse points it sees as (u, v, z-depth, sigma)
                                rows, float32 .npy, for DS-NeRF (frames[].sparse_depth_file_path)
     OUT/sparse_pc.ply          COLMAP's sparse points in the frame of transforms.json
-    OUT/colmap/database.db     features and matches
+    OUT/colmap/database.db     features and matches (without the repeated features dropped
+                               by SfmOptions.drop_repeated)
+    OUT/colmap/database_every_feature.db   every feature, and the verified pairs' matches
+                               of the second stage (SfmOptions.refine_all_features), whose
+                               keypoints the refined model observes
+    OUT/colmap/every_feature/  the second stage's triangulation, before its refinement
     OUT/colmap/mapper/RUN/     each mapping run's models as found (COLMAP's frame, before
                                refinement)
     OUT/colmap/sparse/0/       the refined model: the input's image names and pixels, the frame

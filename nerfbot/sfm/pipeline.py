@@ -1,6 +1,9 @@
-"""Structure from motion with pycolmap: SIFT features, exhaustive or sequential matching guided
-by each pair's two-view geometry, incremental mapping (the best of a few runs), then a
-refinement that COLMAP's defaults leave out.
+"""Structure from motion with pycolmap, in two stages. First the poses, from the SIFT features
+that have no twin in their own image (a texture repeated within a view misleads matching,
+:mod:`nerfbot.sfm.repeats`): exhaustive or sequential matching guided by each pair's two-view
+geometry, incremental mapping (the best of a few runs), then a refinement that COLMAP's
+defaults leave out. Then precision, from every feature: the verified pairs matched again,
+triangulated with those poses and refined the same way.
 
 COLMAP's mapper keeps observations up to 4 px from their projection and bundle-adjusts with a
 squared loss, thresholds chosen for photographs thousands of pixels wide. On the small images a
@@ -15,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,6 +29,7 @@ import pycolmap
 from tqdm.auto import tqdm
 
 from nerfbot.data.colmap import cam_from_world_from_c2w, require_pycolmap
+from nerfbot.sfm.repeats import drop_repeated_features
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +49,9 @@ AGREEMENT_MAX_ERROR_PX = 2.0
 #: dominated by a repeated texture: sound models measured 0.79-1.0, the glassware capture's
 #: periodic table 0.07-0.10 (BENCHMARKS, "Poses from images").
 MIN_PAIRS_AGREEING = 0.5
+#: Default :attr:`SfmOptions.drop_repeated`: on the glassware capture's table, printed from one
+#: tile, 0.3 left 3 of 67 views a tile away and 0.4 none (BENCHMARKS, "Poses from images").
+DROP_REPEATED = 0.4
 
 
 @dataclass(frozen=True)
@@ -81,6 +89,16 @@ class SfmOptions:
         guided_matching: match each verified pair again along the two-view geometry found,
             which keeps correct matches the ratio test rejects on repetitive texture: longer
             tracks and closer poses for more matching time (BENCHMARKS, "Poses from images").
+        drop_repeated: features whose descriptor has a twin in its own image closer than this
+            (L2 distance of unit descriptors, 0-2) are dropped before matching: a texture that
+            repeats within a view (a tiled floor, a table printed from one tile) matches the
+            wrong copy in another view (:mod:`nerfbot.sfm.repeats`). 0 keeps every feature.
+            Known poses (:func:`triangulate_known_poses`) cannot be misled this way: keep
+            every feature there for more points.
+        refine_all_features: with ``drop_repeated``, once the views are posed from the
+            distinct features, match every feature of the pairs verified, triangulate with
+            those poses and bundle-adjust again (:func:`_refine_with_every_feature`): the
+            distinct features choose the poses, all of them make them precise.
     """
 
     matcher: str = "exhaustive"
@@ -91,6 +109,8 @@ class SfmOptions:
     sequential_overlap: int = 10
     mapper_runs: int = 2
     guided_matching: bool = True
+    drop_repeated: float = DROP_REPEATED
+    refine_all_features: bool = True
 
     def check(self) -> None:
         if self.matcher not in MATCHERS:
@@ -100,6 +120,8 @@ class SfmOptions:
             raise ValueError(f"max_reproj_error_px: must be > 0, got {self.max_reproj_error_px}")
         if self.mapper_runs < 1:
             raise ValueError(f"mapper_runs: must be >= 1, got {self.mapper_runs}")
+        if not 0.0 <= self.drop_repeated <= 2.0:
+            raise ValueError(f"drop_repeated: must be in [0, 2], got {self.drop_repeated}")
         if self.refine_rounds < 0:
             raise ValueError(f"refine_rounds: must be >= 0, got {self.refine_rounds}")
 
@@ -112,8 +134,8 @@ class SfmResult:
         reconstruction: the largest model pycolmap found (COLMAP's frame and scale).
         registered: names of the images with a pose, sorted.
         unregistered: names of the images left out.
-        seconds: phase -> wall-clock seconds ("features", "matching", "mapping", "refinement",
-            "total").
+        seconds: phase -> wall-clock seconds ("features", "repeats", "matching", "mapping",
+            "refinement", "all_features", "total").
         models: how many separate models the mapper produced (1 when every registered image
             connects).
         deregistered: images the mapper posed but the refinement removed (too few surviving
@@ -123,6 +145,8 @@ class SfmResult:
             its largest model explains (both ends observations of one 3D point).
         agreement: how far the verified matches agree with the recovered poses
             (:func:`pose_agreement`), or None when not measured.
+        features: {"features": SIFT features extracted, "kept": those matched} (fewer with
+            ``drop_repeated``).
     """
 
     reconstruction: "pycolmap.Reconstruction"
@@ -134,6 +158,7 @@ class SfmResult:
     inlier_matches: int = 0
     mapper_runs: list = field(default_factory=list)
     agreement: Optional[dict] = None
+    features: dict = field(default_factory=dict)
 
     def summary(self) -> dict:
         rec = self.reconstruction
@@ -149,6 +174,7 @@ class SfmResult:
             "mean_track_length": float(rec.compute_mean_track_length()),
             "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()),
             "agreement": self.agreement,
+            "features": dict(self.features),
             "seconds": dict(self.seconds),
         }
 
@@ -230,11 +256,20 @@ def _reader_options(camera: Optional[CameraPrior]) -> "pycolmap.ImageReaderOptio
     return options
 
 
+def _matching_options(options: SfmOptions, threads: int) -> "pycolmap.FeatureMatchingOptions":
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = threads
+    matching.guided_matching = options.guided_matching
+    return matching
+
+
 def _features_and_matches(database: Path, image_dir: Path, names: list[str],
                           camera: Optional[CameraPrior], options: SfmOptions, threads: int,
-                          seconds: dict, bar) -> int:
+                          seconds: dict, bar) -> tuple[int, dict]:
     """SIFT features of ``names`` and their verified matches, into ``database``; returns the
-    number of verified (inlier) matches over all pairs."""
+    number of verified (inlier) matches over all pairs, and the features extracted and kept
+    (:attr:`SfmResult.features`). With ``options.drop_repeated`` the features before dropping
+    are kept in :func:`_every_feature_database` of ``database``."""
     t = time.perf_counter()
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = threads
@@ -243,11 +278,21 @@ def _features_and_matches(database: Path, image_dir: Path, names: list[str],
                               reader_options=_reader_options(camera),
                               extraction_options=extraction, device=pycolmap.Device.cpu)
     seconds["features"] = time.perf_counter() - t
+    db = pycolmap.Database.open(str(database))
+    try:
+        features = {"features": int(db.num_keypoints())}
+    finally:
+        db.close()
+    features["kept"] = features["features"]
+    if options.drop_repeated > 0:
+        bar.set_description("sfm: dropping repeated features")
+        t = time.perf_counter()
+        shutil.copyfile(database, _every_feature_database(database))
+        features = drop_repeated_features(database, options.drop_repeated)
+        seconds["repeats"] = time.perf_counter() - t
     bar.set_description(f"sfm: {options.matcher} matching")
     t = time.perf_counter()
-    matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = threads
-    matching.guided_matching = options.guided_matching
+    matching = _matching_options(options, threads)
     if options.matcher == "exhaustive":
         pycolmap.match_exhaustive(database, matching_options=matching,
                                   device=pycolmap.Device.cpu)
@@ -259,9 +304,77 @@ def _features_and_matches(database: Path, image_dir: Path, names: list[str],
     seconds["matching"] = time.perf_counter() - t
     db = pycolmap.Database.open(str(database))
     try:
-        return int(db.num_inlier_matches())
+        return int(db.num_inlier_matches()), features
     finally:
         db.close()
+
+
+def _every_feature_database(database: Path) -> Path:
+    """Where :func:`_features_and_matches` keeps every feature before dropping repeated ones."""
+    return database.with_name(database.stem + "_every_feature" + database.suffix)
+
+
+def _posed_reconstruction(database: Path, cameras, cam_from_world: dict
+                          ) -> "pycolmap.Reconstruction":
+    """A reconstruction without points of the images of ``database`` named in
+    ``cam_from_world`` (name -> pycolmap.Rigid3d), with ``cameras`` (pycolmap cameras)."""
+    db = pycolmap.Database.open(str(database))
+    try:
+        images = db.read_all_images()
+    finally:
+        db.close()
+    rec = pycolmap.Reconstruction()
+    for cam in cameras:
+        rec.add_camera_with_trivial_rig(cam)
+    for image in images:
+        if image.name in cam_from_world:
+            rec.add_image_with_trivial_frame(
+                pycolmap.Image(name=image.name, camera_id=image.camera_id,
+                               image_id=image.image_id), cam_from_world[image.name])
+    return rec
+
+
+def _triangulate(rec: "pycolmap.Reconstruction", database: Path, image_dir: Path, out: Path,
+                 threads: int, two_view_tracks: bool) -> "pycolmap.Reconstruction":
+    mapping = pycolmap.IncrementalPipelineOptions()
+    mapping.num_threads = threads
+    mapping.triangulation.ignore_two_view_tracks = not two_view_tracks
+    return pycolmap.triangulate_points(rec, database, image_dir, out, options=mapping)
+
+
+def _refine_with_every_feature(rec: "pycolmap.Reconstruction", verified: list, database: Path,
+                               image_dir: Path, out: Path, options: SfmOptions, threads: int,
+                               refine_intrinsics: bool
+                               ) -> tuple["pycolmap.Reconstruction", list[int], list[str]]:
+    """The second stage of :func:`run_sfm` with ``drop_repeated``: the pairs of posed views
+    that the distinct features verified (``verified``) are matched again with every feature
+    (``database``, :func:`_every_feature_database`), the points triangulated with ``rec``'s
+    poses and cameras, and the whole refined as in the first stage. A match to the wrong copy
+    of a repeated texture does not triangulate with the right poses; the right ones add the
+    points the first stage dropped (on the tabletop at 1024 px: 1346 points, and a field 1.8
+    dB behind true poses, without this stage; BENCHMARKS, "Poses from images").
+
+    Returns:
+        (the refined reconstruction, observations dropped per round, images deregistered).
+    """
+    out.mkdir(parents=True, exist_ok=True)
+    posed = {i: im for i, im in rec.images.items() if im.has_pose}
+    pairs = sorted({(posed[a].name, posed[b].name) for a, b, _ in verified
+                    if a in posed and b in posed})
+    pair_list = out / "pairs.txt"
+    pair_list.write_text("".join(f"{a} {b}\n" for a, b in pairs))
+    pairing = pycolmap.ImportedPairingOptions()
+    pairing.match_list_path = str(pair_list)
+    pycolmap.match_image_pairs(database, matching_options=_matching_options(options, threads),
+                               pairing_options=pairing, device=pycolmap.Device.cpu)
+    refined = _posed_reconstruction(database, rec.cameras.values(),
+                                    {im.name: im.cam_from_world() for im in posed.values()})
+    refined = _triangulate(refined, database, image_dir, out, threads, two_view_tracks=False)
+    dropped, removed = refine_reconstruction(refined, options.max_reproj_error_px,
+                                             max(options.refine_rounds, 1),
+                                             refine_intrinsics=refine_intrinsics,
+                                             threads=threads)
+    return refined, dropped, removed
 
 
 def _map(database: Path, image_dir: Path, out: Path, seed: int, known_intrinsics: bool,
@@ -414,8 +527,8 @@ def run_sfm(image_dir: Path, image_names: Sequence[str], work_dir: Path,
     bar = tqdm(total=len(names), desc="sfm: features", unit="image", disable=not progress)
     start = time.perf_counter()
     with _quiet_colmap():
-        inliers = _features_and_matches(database, image_dir, names, camera, options, threads,
-                                        seconds, bar)
+        inliers, features = _features_and_matches(database, image_dir, names, camera, options,
+                                                  threads, seconds, bar)
         t = time.perf_counter()
         known = camera is not None and camera.fixed
         runs, rec, models, best = [], None, {}, -1
@@ -447,6 +560,16 @@ def run_sfm(image_dir: Path, image_names: Sequence[str], work_dir: Path,
             rec, options.max_reproj_error_px, options.refine_rounds,
             refine_intrinsics=not known, threads=threads)
         seconds["refinement"] = time.perf_counter() - t
+        if options.drop_repeated > 0 and options.refine_all_features:
+            bar.set_description("sfm: refining with every feature")
+            t = time.perf_counter()
+            rec, dropped_again, removed_again = _refine_with_every_feature(
+                rec, verified, _every_feature_database(database), image_dir,
+                work_dir / "every_feature", options, threads, refine_intrinsics=not known)
+            dropped += dropped_again
+            removed += removed_again
+            seconds["all_features"] = time.perf_counter() - t
+    # the distinct features' matches (image ids are the same in both databases)
     agreement = pose_agreement(rec, database, verified)
     if agreement["pairs_agreeing"] < MIN_PAIRS_AGREEING:
         log.warning(
@@ -466,7 +589,7 @@ def run_sfm(image_dir: Path, image_names: Sequence[str], work_dir: Path,
     return SfmResult(reconstruction=rec, registered=registered,
                      unregistered=[n for n in names if n not in chosen], seconds=seconds,
                      models=len(models), deregistered=removed, inlier_matches=inliers,
-                     mapper_runs=runs, agreement=agreement)
+                     mapper_runs=runs, agreement=agreement, features=features)
 
 
 def triangulate_known_poses(image_dir: Path, image_names: Sequence[str], work_dir: Path,
@@ -479,37 +602,33 @@ def triangulate_known_poses(image_dir: Path, image_names: Sequence[str], work_di
     Args:
         camera: the images' shared intrinsics (kept fixed).
         c2w: image name -> (4, 4) OpenGL camera-to-world pose, metres.
+        options: see :class:`SfmOptions`; None: its defaults, with every feature kept
+            (``drop_repeated=0``: known poses cannot be misled by a repeated texture).
     """
+    if options is None:
+        options = SfmOptions(drop_repeated=0.0)
     names, work_dir, options, threads = _prepare(image_names, work_dir, options)
     database = work_dir / "database.db"
     seconds: dict[str, float] = {}
     bar = tqdm(total=len(names), desc="sfm: features", unit="image", disable=not progress)
     start = time.perf_counter()
     with _quiet_colmap():
-        inliers = _features_and_matches(database, image_dir, names, camera, options, threads,
-                                        seconds, bar)
+        inliers, features = _features_and_matches(database, image_dir, names, camera, options,
+                                                  threads, seconds, bar)
         bar.set_description("sfm: triangulating")
         t = time.perf_counter()
         db = pycolmap.Database.open(str(database))
         try:
-            cameras, images = db.read_all_cameras(), db.read_all_images()
+            cameras = db.read_all_cameras()
         finally:
             db.close()
-        rec = pycolmap.Reconstruction()
-        for cam in cameras:
-            rec.add_camera_with_trivial_rig(cam)
-        for image in images:
-            pose = pycolmap.Rigid3d(cam_from_world_from_c2w(c2w[image.name]))
-            rec.add_image_with_trivial_frame(
-                pycolmap.Image(name=image.name, camera_id=image.camera_id,
-                               image_id=image.image_id), pose)
-        mapping = pycolmap.IncrementalPipelineOptions()
-        mapping.num_threads = threads
+        rec = _posed_reconstruction(
+            database, cameras,
+            {name: pycolmap.Rigid3d(cam_from_world_from_c2w(pose)) for name, pose in c2w.items()})
         # with the poses known, a point two views agree on is as good as a longer track (and
         # two views may be all there is)
-        mapping.triangulation.ignore_two_view_tracks = False
-        rec = pycolmap.triangulate_points(rec, database, image_dir, work_dir / "triangulated",
-                                          options=mapping)
+        rec = _triangulate(rec, database, image_dir, work_dir / "triangulated", threads,
+                           two_view_tracks=True)
         seconds["triangulation"] = time.perf_counter() - t
         t = time.perf_counter()
         dropped, _ = refine_reconstruction(rec, options.max_reproj_error_px,
@@ -524,4 +643,4 @@ def triangulate_known_poses(image_dir: Path, image_names: Sequence[str], work_di
              "error; refinement dropped %s observations", rec.num_points3D(), len(names),
              rec.compute_mean_reprojection_error(), dropped)
     return SfmResult(reconstruction=rec, registered=sorted(names), unregistered=[],
-                     seconds=seconds, models=1, inlier_matches=inliers)
+                     seconds=seconds, models=1, inlier_matches=inliers, features=features)
