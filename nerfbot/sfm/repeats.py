@@ -16,6 +16,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pycolmap
+from scipy.spatial import cKDTree
 
 #: Two features closer than this in their own image (pixels) are one detection (SIFT reports a
 #: blob at several orientations and nearby positions), never copies of a pattern.
@@ -38,8 +40,6 @@ def nearest_twin_distance(xy: np.ndarray, descriptors: np.ndarray,
     Returns:
         (N,) unit-descriptor L2 distances in [0, 2]; 2 where no other feature is far enough.
     """
-    from scipy.spatial import cKDTree
-
     n = len(xy)
     if len(descriptors) != n:
         raise ValueError(f"{n} keypoints but {len(descriptors)} descriptors")
@@ -68,8 +68,6 @@ def drop_repeated_features(database: Path, max_twin_distance: float,
         {"features": features before, "kept": features after, "per_image_kept_min": the
         fewest kept by one image}.
     """
-    import pycolmap
-
     db = pycolmap.Database.open(str(database))
     try:
         features = {image.image_id: (db.read_keypoints(image.image_id),
