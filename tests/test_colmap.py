@@ -311,6 +311,7 @@ def test_a_descriptor_with_a_distant_twin_in_its_own_image_is_repeated():
     assert d[4] == d[5] == pytest.approx(d[4])
     assert d[4] > 0.3                    # one detection reported twice is not a repeat
     assert nearest_twin_distance(xy[:1], descriptors[:1])[0] == 2.0
+    assert nearest_twin_distance(np.zeros((0, 2)), np.zeros((0, 128))).shape == (0,)
     with pytest.raises(ValueError, match="6 keypoints but 5"):
         nearest_twin_distance(xy, descriptors[:5])
 
