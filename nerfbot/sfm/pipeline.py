@@ -349,9 +349,9 @@ def _refine_with_every_feature(rec: "pycolmap.Reconstruction", verified: list, d
     """The second stage of :func:`run_sfm` with ``drop_repeated``: the pairs of posed views
     that the distinct features verified (``verified``) are matched again with every feature
     (``database``, :func:`_every_feature_database`), the points triangulated with ``rec``'s
-    poses and cameras, and the whole refined as in the first stage. A match to the wrong copy
-    of a repeated texture does not triangulate with the right poses; the right ones add the
-    points the first stage dropped (on the tabletop at 1024 px: 1346 points, and a field 1.8
+    poses and cameras, and the whole refined as in the first stage (at least one round). A
+    match to the wrong copy of a repeated texture does not triangulate with the right poses;
+    the right ones add the points the first stage dropped (on the tabletop at 1024 px: 1346 points, and a field 1.8
     dB behind true poses, without this stage; BENCHMARKS, "Poses from images").
 
     Returns:
