@@ -265,11 +265,13 @@ def _matching_options(options: SfmOptions, threads: int) -> "pycolmap.FeatureMat
 
 def _features_and_matches(database: Path, image_dir: Path, names: list[str],
                           camera: Optional[CameraPrior], options: SfmOptions, threads: int,
-                          seconds: dict, bar) -> tuple[int, dict]:
+                          seconds: dict, bar, keep_every_feature: bool = False
+                          ) -> tuple[int, dict]:
     """SIFT features of ``names`` and their verified matches, into ``database``; returns the
     number of verified (inlier) matches over all pairs, and the features extracted and kept
-    (:attr:`SfmResult.features`). With ``options.drop_repeated`` the features before dropping
-    are kept in :func:`_every_feature_database` of ``database``."""
+    (:attr:`SfmResult.features`). With ``options.drop_repeated`` and ``keep_every_feature``
+    the features before dropping are kept in :func:`_every_feature_database` of ``database``
+    (for :func:`_refine_with_every_feature`)."""
     t = time.perf_counter()
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = threads
@@ -287,7 +289,8 @@ def _features_and_matches(database: Path, image_dir: Path, names: list[str],
     if options.drop_repeated > 0:
         bar.set_description("sfm: dropping repeated features")
         t = time.perf_counter()
-        shutil.copyfile(database, _every_feature_database(database))
+        if keep_every_feature:
+            shutil.copyfile(database, _every_feature_database(database))
         features = drop_repeated_features(database, options.drop_repeated)
         seconds["repeats"] = time.perf_counter() - t
     bar.set_description(f"sfm: {options.matcher} matching")
@@ -351,8 +354,9 @@ def _refine_with_every_feature(rec: "pycolmap.Reconstruction", verified: list, d
     (``database``, :func:`_every_feature_database`), the points triangulated with ``rec``'s
     poses and cameras, and the whole refined as in the first stage (at least one round). A
     match to the wrong copy of a repeated texture does not triangulate with the right poses;
-    the right ones add the points the first stage dropped (on the tabletop at 1024 px: 1346 points, and a field 1.8
-    dB behind true poses, without this stage; BENCHMARKS, "Poses from images").
+    the right ones add the points the first stage dropped (on the tabletop at 1024 px: 1346
+    points, and a field 1.8 dB behind true poses, without this stage; BENCHMARKS, "Poses from
+    images").
 
     Returns:
         (the refined reconstruction, observations dropped per round, images deregistered).
@@ -526,9 +530,11 @@ def run_sfm(image_dir: Path, image_names: Sequence[str], work_dir: Path,
     seconds: dict[str, float] = {}
     bar = tqdm(total=len(names), desc="sfm: features", unit="image", disable=not progress)
     start = time.perf_counter()
+    second_stage = options.drop_repeated > 0 and options.refine_all_features
     with _quiet_colmap():
         inliers, features = _features_and_matches(database, image_dir, names, camera, options,
-                                                  threads, seconds, bar)
+                                                  threads, seconds, bar,
+                                                  keep_every_feature=second_stage)
         t = time.perf_counter()
         known = camera is not None and camera.fixed
         runs, rec, models, best = [], None, {}, -1
@@ -560,7 +566,7 @@ def run_sfm(image_dir: Path, image_names: Sequence[str], work_dir: Path,
             rec, options.max_reproj_error_px, options.refine_rounds,
             refine_intrinsics=not known, threads=threads)
         seconds["refinement"] = time.perf_counter() - t
-        if options.drop_repeated > 0 and options.refine_all_features:
+        if second_stage:
             bar.set_description("sfm: refining with every feature")
             t = time.perf_counter()
             rec, dropped_again, removed_again = _refine_with_every_feature(
