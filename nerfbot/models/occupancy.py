@@ -18,7 +18,7 @@ from nerfbot.ops.cameras import Rays
 from nerfbot.ops.contraction import disparity_distance
 from nerfbot.ops.losses import distortion_loss, opacity_entropy_loss
 from nerfbot.ops.rendering import RenderOutput, composite, render_weights
-from nerfbot.ops.sampling import OccupancyGrid, ray_aabb
+from nerfbot.ops.sampling import OccupancyGrid, leaves_through_bottom, ray_aabb
 
 
 @dataclass
@@ -144,6 +144,17 @@ class OccupancyModelConfig:
     (BENCHMARKS.md, sections 9 and 10). 0 turns it off; ``ngp`` trains with 1e-4."""
     carving_points: int = 4096
     """Random points per step for ``carving_weight``."""
+    floor_trains_background: bool = True
+    """Whether training rays that leave the bounds through their bottom face (below them lies
+    the scene's support: a table, a bench, a floor, the ground) train the learned background.
+    They still show it; with False its gradients from them are dropped, so the background,
+    a smooth function of direction that every view shares, cannot learn the colour of a plain
+    surface seen from above (a mat, a bench top, a notebook) in place of the field, which
+    otherwise may leave that surface empty and lose its print. True by default: False
+    gains on frame-filling workspaces and loses where the background rightly shows below the
+    bounds (the tabletop's sky under the table) or stands in for a room's floor while the
+    field is young (BENCHMARKS.md, section 10, "Plain surfaces painted by the learned
+    background"). Ignored under the contraction, which has no bottom face."""
     contraction: bool = False
     """Model all of space, not only the bounds: the scene contraction
     (:mod:`nerfbot.ops.contraction`) keeps the bounds' enclosing cube as it is and maps
@@ -281,7 +292,7 @@ class OccupancyModel(Model):
         rounds from the ray's entry, colours of the samples that show, no gradients."""
         if not self.training:
             return self._render_inference(rays, cond)
-        t_near, t_far, _ = self.ray_range(rays)
+        t_near, t_far, hit = self.ray_range(rays)
         jitter = torch.rand(t_near.shape, generator=generator, device=t_near.device)
         t_begin = t_near + jitter * self.dt_min
         n = len(rays)
@@ -315,7 +326,11 @@ class OccupancyModel(Model):
             scale = (0.5 * (ts + te) / self.config.near_gradient_distance).square().clamp_max(1.0)
             sigma = scale_gradient(sigma, scale)
             rgb = scale_gradient(rgb, scale[:, None])
-        out = composite(sigma, rgb, ts, te, ray_idx, n, self.background(rays.directions),
+        background = self.background(rays.directions)
+        if not self.config.floor_trains_background and not self.config.contraction:
+            floor = leaves_through_bottom(rays.origins, rays.directions, t_far, hit, self.aabb)
+            background = torch.where(floor[:, None], background.detach(), background)
+        out = composite(sigma, rgb, ts, te, ray_idx, n, background,
                         t_far, rays.z_per_t, with_median=False)
         if self.label_head is not None:
             out.positions, out.features = x, feat

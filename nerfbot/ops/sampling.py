@@ -64,6 +64,23 @@ def ray_aabb_reference(origins: torch.Tensor, directions: torch.Tensor, aabb: to
     return t_near, t_far, hit
 
 
+def leaves_through_bottom(origins: torch.Tensor, directions: torch.Tensor, t_far: torch.Tensor,
+                          hit: torch.Tensor, aabb: torch.Tensor) -> torch.Tensor:
+    """(R,) bool: which rays leave the box (``aabb`` (2, 3), metres) through its bottom face
+    (the min-z face), given their :func:`ray_aabb` exit ``t_far`` and ``hit`` (R,); rays that
+    miss the box leave through no face. A ray leaves through the face of the axis whose slab it
+    leaves first; the bottom one when that axis is z and the ray points down (a ray leaving
+    through an edge or corner shared with the bottom face counts as leaving through it)."""
+    with torch.no_grad():
+        box = aabb.reshape(2, 3).to(origins)
+        down = directions[:, 2] < 0
+        t_bottom = (box[0, 2] - origins[:, 2]) / torch.where(down, directions[:, 2],
+                                                              -torch.ones_like(t_far))
+        # the exit of the first slab left: within float32 rounding of t_far when it is z's
+        tol = 1e-5 * (t_far.abs() + 1.0)
+        return hit & down & ((t_bottom - t_far).abs() <= tol)
+
+
 def stratified_samples(t_near: torch.Tensor, t_far: torch.Tensor, n: int,
                        generator: torch.Generator | None = None, jitter: bool = True) -> torch.Tensor:
     """``n + 1`` interval edges per ray (R, n + 1) between near and far, one uniform sample per bin.
