@@ -18,7 +18,7 @@ from nerfbot.ops.cameras import Rays
 from nerfbot.ops.contraction import disparity_distance
 from nerfbot.ops.losses import distortion_loss, opacity_entropy_loss
 from nerfbot.ops.rendering import RenderOutput, composite, render_weights
-from nerfbot.ops.sampling import OccupancyGrid, leaves_through_bottom, ray_aabb
+from nerfbot.ops.sampling import OccupancyGrid, crosses_top_to_bottom, ray_aabb
 
 
 @dataclass
@@ -145,16 +145,18 @@ class OccupancyModelConfig:
     carving_points: int = 4096
     """Random points per step for ``carving_weight``."""
     floor_trains_background: bool = True
-    """Whether training rays that leave the bounds through their bottom face (below them lies
-    the scene's support: a table, a bench, a floor, the ground) train the learned background.
-    They still show it; with False its gradients from them are dropped, so the background,
-    a smooth function of direction that every view shares, cannot learn the colour of a plain
-    surface seen from above (a mat, a bench top, a notebook) in place of the field, which
-    otherwise may leave that surface empty and lose its print. True by default: False
-    gains on frame-filling workspaces and loses where the background rightly shows below the
-    bounds (the tabletop's sky under the table) or stands in for a room's floor while the
-    field is young (BENCHMARKS.md, section 10, "Plain surfaces painted by the learned
-    background"). Ignored under the contraction, which has no bottom face."""
+    """Whether training rays that cross the bounds from their top face to their bottom face
+    train the learned background. Such a ray, from a camera above the bounds, passes through
+    all their height, and in scenes whose content stands on a support filling the bounds'
+    footprint (a table, a bench) it must meet a surface before it leaves. With False they
+    still show the background but send it no gradient, so the background, a smooth function
+    of direction that every view shares, cannot learn the colour of a plain surface seen from
+    above (a cutting mat, a bench top) in place of the field, which otherwise may leave that
+    surface empty and lose its print. Rays that enter through a side (the sky under a table)
+    and cameras inside the bounds (rooms) are unaffected. True by default: False gains on
+    frame-filling workspaces and is not better elsewhere (BENCHMARKS.md, section 10, "Plain
+    surfaces painted by the learned background"). Ignored under the contraction, which has no
+    faces."""
     contraction: bool = False
     """Model all of space, not only the bounds: the scene contraction
     (:mod:`nerfbot.ops.contraction`) keeps the bounds' enclosing cube as it is and maps
@@ -328,7 +330,8 @@ class OccupancyModel(Model):
             rgb = scale_gradient(rgb, scale[:, None])
         background = self.background(rays.directions)
         if not self.config.floor_trains_background and not self.config.contraction:
-            floor = leaves_through_bottom(rays.origins, rays.directions, t_far, hit, self.aabb)
+            floor = crosses_top_to_bottom(rays.origins, rays.directions, t_near, t_far, hit,
+                                          self.aabb)
             background = torch.where(floor[:, None], background.detach(), background)
         out = composite(sigma, rgb, ts, te, ray_idx, n, background,
                         t_far, rays.z_per_t, with_median=False)

@@ -64,21 +64,26 @@ def ray_aabb_reference(origins: torch.Tensor, directions: torch.Tensor, aabb: to
     return t_near, t_far, hit
 
 
-def leaves_through_bottom(origins: torch.Tensor, directions: torch.Tensor, t_far: torch.Tensor,
-                          hit: torch.Tensor, aabb: torch.Tensor) -> torch.Tensor:
-    """(R,) bool: which rays leave the box (``aabb`` (2, 3), metres) through its bottom face
-    (the min-z face), given their :func:`ray_aabb` exit ``t_far`` and ``hit`` (R,); rays that
-    miss the box leave through no face. A ray leaves through the face of the axis whose slab it
-    leaves first; the bottom one when that axis is z and the ray points down (a ray leaving
-    through an edge or corner shared with the bottom face counts as leaving through it)."""
+def crosses_top_to_bottom(origins: torch.Tensor, directions: torch.Tensor, t_near: torch.Tensor,
+                          t_far: torch.Tensor, hit: torch.Tensor, aabb: torch.Tensor
+                          ) -> torch.Tensor:
+    """(R,) bool: which rays from outside the box (``aabb`` (2, 3), metres) enter it through its
+    top face and leave it through its bottom face, given their :func:`ray_aabb` entry and exit
+    ``t_near``, ``t_far`` and ``hit`` (R,). A ray enters (leaves) through the face of the axis
+    whose slab it enters last (leaves first): for these, z's on both ends, pointing down. Rays
+    that miss the box, or start inside it, cross nothing; a ray through an edge or corner
+    counts as crossing the top or bottom face there."""
     with torch.no_grad():
         box = aabb.reshape(2, 3).to(origins)
-        down = directions[:, 2] < 0
-        t_bottom = (box[0, 2] - origins[:, 2]) / torch.where(down, directions[:, 2],
-                                                              -torch.ones_like(t_far))
-        # the exit of the first slab left: within float32 rounding of t_far when it is z's
-        tol = 1e-5 * (t_far.abs() + 1.0)
-        return hit & down & ((t_bottom - t_far).abs() <= tol)
+        dz = directions[:, 2]
+        down = dz < 0
+        step = torch.where(down, dz, -torch.ones_like(dz))
+        t_top = (box[1, 2] - origins[:, 2]) / step
+        t_bottom = (box[0, 2] - origins[:, 2]) / step
+        # within float32 rounding of the slab test's own distances
+        enters = (t_top - t_near).abs() <= 1e-5 * (t_near.abs() + 1.0)
+        leaves = (t_bottom - t_far).abs() <= 1e-5 * (t_far.abs() + 1.0)
+        return hit & down & (origins[:, 2] > box[1, 2]) & enters & leaves
 
 
 def stratified_samples(t_near: torch.Tensor, t_far: torch.Tensor, n: int,
