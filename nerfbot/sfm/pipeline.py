@@ -93,8 +93,11 @@ class SfmOptions:
             (L2 distance of unit descriptors, 0-2) are dropped before matching: a texture that
             repeats within a view (a tiled floor, a table printed from one tile) matches the
             wrong copy in another view (:mod:`nerfbot.sfm.repeats`). 0 keeps every feature.
-            Known poses (:func:`triangulate_known_poses`) cannot be misled this way: keep
-            every feature there for more points.
+            With known poses (:func:`triangulate_known_poses`) the poses cannot be misled,
+            but a wrong copy matched along an epipolar line still triangulates, and with two
+            views nothing outvotes it (a sixth to a third of two-view keypoints decimetres
+            off); dropping them did not raise two-view PSNR (one seed), so known poses keep
+            every feature by default (BENCHMARKS, "How right the keypoints are").
         refine_all_features: with ``drop_repeated``, once the views are posed from the
             distinct features, match every feature of the pairs verified, triangulate with
             those poses and bundle-adjust again (:func:`_refine_with_every_feature`): the
@@ -609,7 +612,8 @@ def triangulate_known_poses(image_dir: Path, image_names: Sequence[str], work_di
         camera: the images' shared intrinsics (kept fixed).
         c2w: image name -> (4, 4) OpenGL camera-to-world pose, metres.
         options: see :class:`SfmOptions`; None: its defaults, with every feature kept
-            (``drop_repeated=0``: known poses cannot be misled by a repeated texture).
+            (``drop_repeated=0``: the poses cannot be misled by a repeated texture; see
+            :attr:`SfmOptions.drop_repeated` for the points it can mislead).
     """
     if options is None:
         options = SfmOptions(drop_repeated=0.0)
