@@ -1,4 +1,4 @@
-"""Which training rays ``floor_trains_background=false`` keeps from training the background.
+"""Which training rays ``--option floor_background`` acts on: those crossing top to bottom.
 
 usage: python docs/benchmarks/floor_rays.py DATASET [DATASET ...]
 

@@ -15,7 +15,7 @@ from nerfbot.data.dataset import Dataset
 from nerfbot.data.error_map import ErrorMap
 from nerfbot.data.errors import DatasetError
 from nerfbot.ops.cameras import Rays, pixel_rays
-from nerfbot.ops.sampling import ray_aabb
+from nerfbot.ops.sampling import crosses_top_to_bottom, ray_aabb
 
 
 log = logging.getLogger(__name__)
@@ -246,15 +246,30 @@ class PixelBank:
         """Median length, metres, of the training rays' paths through the box ``aabb`` (2, 3):
         over the centre rays of ``rays`` pixels spread evenly through the bank (no random
         draws), those that meet the box; None when none does."""
-        count = len(self) if self.valid is None else len(self.valid)
-        rank = torch.linspace(0, count - 1, min(rays, count), device=self.device).long()
-        pixels = rank if self.valid is None else self.valid.pixel(rank)
-        r = self.centre_rays(pixels)
+        r = self._spread_centre_rays(rays)
         box = torch.as_tensor(aabb, dtype=r.origins.dtype, device=r.origins.device)
         t_near, t_far, hit = ray_aabb(r.origins, r.directions, box)
         if not bool(hit.any()):
             return None
         return float((t_far - t_near)[hit].median())
+
+    def top_to_bottom_share(self, aabb, rays: int = 1 << 14) -> float:
+        """Share in [0, 1] of the training rays that cross the box ``aabb`` (2, 3) from its
+        top face to its bottom face (:func:`~nerfbot.ops.sampling.crosses_top_to_bottom`),
+        over the centre rays of ``rays`` pixels spread evenly through the bank: near 1 when
+        the cameras look down on a support that fills the box's footprint."""
+        r = self._spread_centre_rays(rays)
+        box = torch.as_tensor(aabb, dtype=r.origins.dtype, device=r.origins.device)
+        t_near, t_far, hit = ray_aabb(r.origins, r.directions, box)
+        crossing = crosses_top_to_bottom(r.origins, r.directions, t_near, t_far, hit, box)
+        return float(crossing.float().mean())
+
+    def _spread_centre_rays(self, rays: int) -> Rays:
+        """The centre rays of ``rays`` pixels spread evenly through the bank (no random draws)."""
+        count = len(self) if self.valid is None else len(self.valid)
+        rank = torch.linspace(0, count - 1, min(rays, count), device=self.device).long()
+        pixels = rank if self.valid is None else self.valid.pixel(rank)
+        return self.centre_rays(pixels)
 
     def centre_rays(self, pixels: torch.Tensor) -> Rays:
         """Rays (n,) through the centres of pixels ``pixels`` (n,) (indices into the bank)."""

@@ -162,6 +162,11 @@ class Model(nn.Module, metaclass=abc.ABCMeta):
             if m is not self and hasattr(m, "init_ray_length"):
                 m.init_ray_length(length_m)
 
+    def init_floor_share(self, share: float) -> None:
+        """Tell the model which share of the training rays cross the bounds from their top
+        face to their bottom face (:meth:`~nerfbot.data.pixels.PixelBank.top_to_bottom_share`),
+        for options chosen from the data; most models take nothing from it."""
+
     def param_groups(self) -> list[dict]:
         """Optimiser groups (``params``, ``lr_scale``): the fields' own groups, then every other
         parameter (background, second field, ...) at scale 1."""

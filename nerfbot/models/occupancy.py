@@ -5,6 +5,7 @@ termination. Every grid-like field renders through it.
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 from typing import Optional
@@ -19,6 +20,8 @@ from nerfbot.ops.contraction import disparity_distance
 from nerfbot.ops.losses import distortion_loss, opacity_entropy_loss
 from nerfbot.ops.rendering import RenderOutput, composite, render_weights
 from nerfbot.ops.sampling import OccupancyGrid, crosses_top_to_bottom, ray_aabb
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -144,19 +147,33 @@ class OccupancyModelConfig:
     (BENCHMARKS.md, sections 9 and 10). 0 turns it off; ``ngp`` trains with 1e-4."""
     carving_points: int = 4096
     """Random points per step for ``carving_weight``."""
-    floor_trains_background: bool = True
-    """Whether training rays that cross the bounds from their top face to their bottom face
-    train the learned background. Such a ray, from a camera above the bounds, passes through
-    all their height, and in scenes whose content stands on a support filling the bounds'
-    footprint (a table, a bench) it must meet a surface before it leaves. With False they
-    still show the background but send it no gradient, so the background, a smooth function
-    of direction that every view shares, cannot learn the colour of a plain surface seen from
-    above (a cutting mat, a bench top) in place of the field, which otherwise may leave that
-    surface empty and lose its print. Rays that enter through a side (the sky under a table)
-    and cameras inside the bounds (rooms) are unaffected. True by default: False gains on
-    frame-filling workspaces and is not better elsewhere (BENCHMARKS.md, section 10, "Plain
-    surfaces painted by the learned background"). Ignored under the contraction, which has no
-    faces."""
+    floor_background: str = "learned"
+    """What the learned background does on training rays that cross the bounds from their top
+    face to their bottom face. Such a ray, from a camera above the bounds, passes through all
+    their height, and in scenes whose content stands on a support filling the bounds'
+    footprint (a table, a bench) it must meet a surface before it leaves; the background, a
+    smooth function of direction that every view shares, can otherwise learn the colour of a
+    plain surface seen from above (a cutting mat, a bench top) in place of the field, which
+    then leaves that surface empty and loses its print. ``"learned"``: these rays train the
+    background like any other. ``"detached"``: they show it but send it no gradient.
+    ``"random"``: they see a uniformly random colour per ray and step instead, which only an
+    opaque field can match, so they end inside the bounds (Instant-NGP's random backgrounds,
+    on these rays only; renders still show the learned background). The colour moves from
+    the learned background's (without its gradient) to the random one over the first
+    ``floor_random_ramp`` of the budget: random from the first step, a young field saturates
+    where the rays enter the bounds and paints the views on that face. Rays that enter through
+    a side (the sky under a table) and cameras inside the bounds (rooms) are unaffected.
+    ``"auto"``: ``"random"`` when at least :data:`FLOOR_SUPPORT_SHARE` of the training rays
+    cross the bounds so (the cameras look down on a support that fills the bounds'
+    footprint: the frame-filling workspaces and bins), else ``"learned"`` (the tabletop,
+    whose crossing rays pass beside the table to the sky, and rooms). ``"learned"`` is the
+    default: ``"auto"`` gains on the workspaces and loses where a plain, faintly textured
+    surface (the bins' bench top) is pushed to be opaque at a height no view settles
+    (BENCHMARKS.md, section 10, "Random colours where a support fills the view"). Ignored
+    under the contraction, which has no faces."""
+    floor_random_ramp: float = 0.25
+    """Share of the budget over which ``floor_background="random"`` fades in; 0: from the
+    first step."""
     contraction: bool = False
     """Model all of space, not only the bounds: the scene contraction
     (:mod:`nerfbot.ops.contraction`) keeps the bounds' enclosing cube as it is and maps
@@ -180,13 +197,25 @@ class OccupancyModelConfig:
         if self.density_noise_centre not in ("median", "mean"):
             raise ValueError(f"option density_noise_centre: must be 'median' or 'mean', got "
                              f"{self.density_noise_centre!r}")
+        if self.floor_background not in FLOOR_BACKGROUNDS:
+            raise ValueError(f"option floor_background: must be one of "
+                             f"{', '.join(FLOOR_BACKGROUNDS)}, got {self.floor_background!r}")
         if self.supersample_pattern not in ("grid", "corners", "adaptive"):
             raise ValueError(f"option supersample_pattern: must be 'grid', 'corners' or "
                              f"'adaptive', got {self.supersample_pattern!r}")
-        for name in ("early_stop_transmittance", "supersample_from", "full_march_kept_fraction"):
+        for name in ("early_stop_transmittance", "supersample_from", "full_march_kept_fraction",
+                     "floor_random_ramp"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"option {name}: must be in [0, 1], got {getattr(self, name)}")
 
+
+#: The values of ``OccupancyModelConfig.floor_background``.
+FLOOR_BACKGROUNDS = ("auto", "learned", "detached", "random")
+
+#: ``floor_background="auto"`` gives the rays that cross the bounds from top to bottom random
+#: colours when at least this share of the training rays do: 99.7-99.9 % on the zoo's
+#: workspaces and bins, 2.9 % on the tabletop, none in a room (BENCHMARKS.md, section 10).
+FLOOR_SUPPORT_SHARE = 0.9
 
 #: Training keeps the samples before a ray's transmittance falls below this (1e-4: a sample
 #: behind it weighs less than 1e-4 in the pixel).
@@ -227,6 +256,19 @@ class OccupancyModel(Model):
         # whether the next training step marches fully, without the density-only pass; saved
         # with the model so that a resumed run makes the same choices
         self.register_buffer("train_full_march", torch.zeros((), dtype=torch.bool))
+        #: what ``floor_background`` does in this run; "auto" is settled by
+        #: :meth:`init_floor_share` from the training rays, and trains as "learned" until then
+        self.floor_mode = "learned" if cfg.floor_background == "auto" else cfg.floor_background
+        self._progress = 0.0  # share of the budget done, from before_step
+
+    def init_floor_share(self, share: float) -> None:
+        """Settle ``floor_background="auto"`` from the share of training rays that cross the
+        bounds from top to bottom: "random" at :data:`FLOOR_SUPPORT_SHARE` or more."""
+        if self.config.floor_background != "auto" or self.config.contraction:
+            return
+        self.floor_mode = "random" if share >= FLOOR_SUPPORT_SHARE else "learned"
+        log.info("%.1f %% of the training rays cross the bounds from top to bottom: "
+                 "floor_background %s", 100.0 * share, self.floor_mode)
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         # checkpoints written before the buffer existed resume marching in rounds
@@ -328,16 +370,28 @@ class OccupancyModel(Model):
             scale = (0.5 * (ts + te) / self.config.near_gradient_distance).square().clamp_max(1.0)
             sigma = scale_gradient(sigma, scale)
             rgb = scale_gradient(rgb, scale[:, None])
-        background = self.background(rays.directions)
-        if not self.config.floor_trains_background and not self.config.contraction:
-            floor = crosses_top_to_bottom(rays.origins, rays.directions, t_near, t_far, hit,
-                                          self.aabb)
-            background = torch.where(floor[:, None], background.detach(), background)
+        background = self._training_background(rays, t_near, t_far, hit, generator)
         out = composite(sigma, rgb, ts, te, ray_idx, n, background,
                         t_far, rays.z_per_t, with_median=False)
         if self.label_head is not None:
             out.positions, out.features = x, feat
         return out
+
+    def _training_background(self, rays: Rays, t_near, t_far, hit, generator) -> torch.Tensor:
+        """(R, 3) the colour each training ray sees beyond the bounds, with
+        ``floor_background`` applied to the rays that cross them from top to bottom."""
+        background = self.background(rays.directions)
+        mode = self.floor_mode
+        if mode == "learned" or self.config.contraction:
+            return background
+        floor = crosses_top_to_bottom(rays.origins, rays.directions, t_near, t_far, hit,
+                                      self.aabb)[:, None]
+        if mode == "detached":
+            return torch.where(floor, background.detach(), background)
+        noise = torch.rand(background.shape, generator=generator, device=background.device)
+        ramp = self.config.floor_random_ramp
+        weight = 1.0 if ramp <= 0 else min(1.0, self._progress / ramp)
+        return torch.where(floor, torch.lerp(background.detach(), noise, weight), background)
 
     def render_rays_differentiable(self, rays: Rays, cond=None) -> RenderOutput:
         """Eval-mode samples (marched in rounds from each ray's entry until it saturates, no
@@ -487,6 +541,7 @@ class OccupancyModel(Model):
 
     # -- upkeep ------------------------------------------------------------------------------
     def before_step(self, step: int, generator=None, progress: float = 0.0) -> dict:
+        self._progress = float(progress)
         out = dict(self.field.before_step(step, progress))
         if step == 0 or step % self.config.grid_update_every:
             return out

@@ -205,6 +205,7 @@ class Trainer:
         self.bank = PixelBank(dataset, train, self.device, conditions)
         self.model.init_mean_color(self.bank.mean_color())
         self.model.init_ray_length(self.bank.median_ray_path(self.model.aabb))
+        self.model.init_floor_share(self.bank.top_to_bottom_share(self.model.aabb))
         if conditioning.kind == "time" and config.dynamic_rays > 0:
             self._load_importance()
         if config.error_rays > 0:
@@ -356,6 +357,7 @@ class Trainer:
         self.model.use_run_loader(load_model)
         self.model.init_mean_color(self.bank.mean_color())
         self.model.init_ray_length(self.bank.median_ray_path(self.model.aabb))
+        self.model.init_floor_share(self.bank.top_to_bottom_share(self.model.aabb))
         aabb = self.model.aabb
         self.depth_scale = float((aabb[1] - aabb[0]).max()) * math.sqrt(3.0)
 
