@@ -16,7 +16,7 @@ import torch
 
 from nerfbot.data import load_dataset
 from nerfbot.data.pixels import PixelBank
-from nerfbot.ops.sampling import crosses_top_to_bottom, ray_aabb
+from nerfbot.ops.sampling import ray_aabb
 
 
 def main() -> None:
@@ -33,9 +33,8 @@ def main() -> None:
         t_near, t_far, hit = ray_aabb(rays.origins, rays.directions, box)
         exit_z = rays.origins[:, 2] + rays.directions[:, 2] * t_far
         bottom = hit & (rays.directions[:, 2] < 0) & ((exit_z - box[0, 2]).abs() < 1e-4)
-        crossing = crosses_top_to_bottom(rays.origins, rays.directions, t_near, t_far, hit, box)
-        print(f"| {path} | {100 * float(bottom.float().mean()):.1f} % | "
-              f"{100 * float(crossing.float().mean()):.1f} % |")
+        crossing = bank.top_to_bottom_share(box, 20000)   # what floor_background=auto reads
+        print(f"| {path} | {100 * float(bottom.float().mean()):.1f} % | {100 * crossing:.1f} % |")
 
 
 if __name__ == "__main__":
