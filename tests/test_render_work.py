@@ -3,7 +3,7 @@
 - The occupancy-grid renderer's eval-mode renders march in rounds that grow
   (``first_round_samples``, doubling up to ``inference_round_samples``): the samples kept must
   not depend on the rounds, and small first rounds must spend fewer density evaluations
-  behind surfaces.
+  behind surfaces; so must training's density-only pass (``train_first_round_samples``).
 - With S x S rays through every pixel, the centre ray only gives depth: it is rendered
   without colour, and the image must equal one assembled from full renders.
 """
@@ -71,9 +71,9 @@ def _model(field, first, most=16) -> OccupancyModel:
 def test_kept_samples_do_not_depend_on_the_rounds(first):
     rays = _rays()
     t_near, t_far, _ = _model(Blobs(), 16).ray_range(rays)
-    ref = _model(Blobs(), 16)._march_until_opaque(rays, t_near, t_far, None, 1e-4, growing=True)
+    ref = _model(Blobs(), 16)._march_until_opaque(rays, t_near, t_far, None, 1e-4)
     got = _model(Blobs(), first)._march_until_opaque(rays, t_near, t_far, None, 1e-4,
-                                                     growing=True)
+                                                     first_round=first)
     assert ref[0].numel() > 0
     assert torch.equal(ref[0], got[0])  # the same samples of the same rays
     # t resumes from each round's float32 stop, so positions agree to float32 rounding
@@ -95,9 +95,33 @@ def test_small_first_rounds_evaluate_fewer_samples_and_render_the_same():
     torch.testing.assert_close(out[4].depth, out[16].depth, atol=2e-2, rtol=0)
 
 
+def test_training_density_pass_rounds_keep_the_samples_and_evaluate_fewer():
+    """Training's density-only pass (``train_first_round_samples``) finds where each jittered
+    training ray saturates: from small first rounds it keeps the same samples, so the trained
+    pass and its loss are the same, with fewer density evaluations behind the balls."""
+    rays = _rays()
+    runs = {}
+    for first in (0, 4):
+        field = Blobs()
+        cfg = OccupancyModelConfig(train_first_round_samples=first)  # a first step: rounds
+        model = OccupancyModel(field, FixedBackground((1.0, 1.0, 1.0)), AABB, cfg).train()
+        model.grid.update(lambda x: field.density(x)[0], model.dt_min,
+                          torch.Generator().manual_seed(0))
+        field.calls = 0
+        out = model.render_rays(rays, torch.Generator().manual_seed(3))
+        runs[first] = (out, field.calls)
+    (ref, ref_calls), (got, got_calls) = runs[0], runs[4]
+    assert torch.equal(ref.ray_indices, got.ray_indices)
+    torch.testing.assert_close(got.t_starts, ref.t_starts, atol=1e-5, rtol=1e-6)
+    torch.testing.assert_close(got.rgb, ref.rgb, atol=1e-4, rtol=0)
+    assert got_calls < 0.8 * ref_calls, (got_calls, ref_calls)
+
+
 def test_first_round_must_be_positive():
     with pytest.raises(ValueError, match="first_round_samples"):
         OccupancyModelConfig(first_round_samples=0)
+    with pytest.raises(ValueError, match="train_first_round_samples"):
+        OccupancyModelConfig(train_first_round_samples=-1)
 
 
 class CountingBlobs(Blobs):

@@ -69,9 +69,14 @@ class OccupancyModelConfig:
     a surface saturates within a few samples of it: small first rounds stop such rays before
     they evaluate samples hidden behind it, while rays through fog still reach long rounds
     (fewer passes). The samples kept are the same whatever the rounds, up to float32 rounding
-    where a round resumes. Training and the differentiable render (pose estimation) march in
-    rounds of ``inference_round_samples``: the closed-loop drive of the navigation tutorial
-    changes its outcome with float-level changes of the field, and keeps its numerics."""
+    where a round resumes. The differentiable render (pose estimation) marches in rounds of
+    ``inference_round_samples``: the closed-loop drive of the navigation tutorial changes its
+    outcome with float-level changes of the field, and keeps its numerics."""
+    train_first_round_samples: int = 4
+    """The same for training's density-only pass (with ``train_early_termination``), which
+    finds where each training ray saturates; 0: rounds of ``inference_round_samples``. From 4
+    instead of 16, that pass evaluates a third fewer samples on a trained bins scene and a
+    step late in a budget takes about 8 % less time (BENCHMARKS.md, section 7)."""
     distortion_weight: float = 0.01
     """Weight of the distortion loss (mip-NeRF 360), which discourages fog spread along rays;
     distances are measured in cube diagonals. 0.01 gained 0.2-0.6 dB test PSNR on the tabletop
@@ -191,7 +196,7 @@ class OccupancyModelConfig:
         for name in ("grid_warmup_steps", "grid_threshold", "cone_angle", "distortion_weight",
                      "opacity_entropy_weight", "density_noise", "shade_min_weight",
                      "near_gradient_distance", "supersample_tolerance", "carving_weight",
-                     "adaptive_tolerance"):
+                     "adaptive_tolerance", "train_first_round_samples"):
             if getattr(self, name) < 0:
                 raise ValueError(f"option {name}: must be >= 0, got {getattr(self, name)}")
         if self.density_noise_centre not in ("median", "mean"):
@@ -343,8 +348,9 @@ class OccupancyModel(Model):
         rounds = self.config.train_early_termination and not bool(self.train_full_march)
         if rounds:
             with torch.no_grad():
-                ray_idx, ts, te, _, _, _ = self._march_until_opaque(rays, t_begin, t_far, cond,
-                                                                 TRAIN_STOP_TRANSMITTANCE)
+                ray_idx, ts, te, _, _, _ = self._march_until_opaque(
+                    rays, t_begin, t_far, cond, TRAIN_STOP_TRANSMITTANCE,
+                    first_round=self.config.train_first_round_samples)
                 full = self._march(rays, t_begin, t_far).ray_indices.numel()
                 self._choose_train_march(ray_idx.numel(), full)
         else:
@@ -418,9 +424,9 @@ class OccupancyModel(Model):
 
     def _march_until_opaque(self, rays: Rays, t_begin: torch.Tensor, t_far: torch.Tensor, cond,
                             stop_transmittance: float, with_color: bool = False,
-                            drop_hidden: bool = True, growing: bool = False):
-        """March in rounds of ``inference_round_samples`` samples per ray (with ``growing``:
-        ``first_round_samples``, doubling each round up to it), evaluating density after each
+                            drop_hidden: bool = True, first_round: int = 0):
+        """March in rounds of ``inference_round_samples`` samples per ray (with ``first_round``
+        > 0: that many first, doubling each round up to it), evaluating density after each
         round and dropping rays whose transmittance fell below ``stop_transmittance``: later
         rounds are never marched.
 
@@ -438,8 +444,8 @@ class OccupancyModel(Model):
         pieces = []
         stop = math.log(stop_transmittance)
         round_samples = self.config.inference_round_samples
-        if growing:
-            round_samples = min(self.config.first_round_samples, round_samples)
+        if first_round > 0:
+            round_samples = min(first_round, round_samples)
         while bool(alive.any()):
             ids = torch.nonzero(alive).squeeze(-1)
             sub = rays[ids]
@@ -498,7 +504,8 @@ class OccupancyModel(Model):
         t_near, t_far, _ = self.ray_range(rays)
         gidx, ts, te, sigma, rgb, (x, feat) = self._march_until_opaque(
             rays, t_near, t_far, cond, self.config.early_stop_transmittance,
-            with_color=with_color, drop_hidden=False, growing=True)
+            with_color=with_color, drop_hidden=False,
+            first_round=self.config.first_round_samples)
         if with_color:
             background = self.background(rays.directions)
         else:
