@@ -15,7 +15,6 @@ images"); with known intrinsics they stay fixed throughout.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import os
 import shutil
@@ -29,6 +28,7 @@ import pycolmap
 from tqdm.auto import tqdm
 
 from nerfbot.data.colmap import cam_from_world_from_c2w, require_pycolmap
+from nerfbot.sfm.console import quiet_colmap
 from nerfbot.sfm.repeats import drop_repeated_features
 
 log = logging.getLogger(__name__)
@@ -180,17 +180,6 @@ class SfmResult:
             "features": dict(self.features),
             "seconds": dict(self.seconds),
         }
-
-
-@contextlib.contextmanager
-def _quiet_colmap(level: int = 1):
-    """COLMAP logs every step at INFO to stderr; keep warnings and errors only."""
-    previous = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = level
-    try:
-        yield
-    finally:
-        pycolmap.logging.minloglevel = previous
 
 
 def _bundle_options(refine_intrinsics: bool, threads: int) -> "pycolmap.BundleAdjustmentOptions":
@@ -531,10 +520,11 @@ def run_sfm(image_dir: Path, image_names: Sequence[str], work_dir: Path,
     models_dir = work_dir / "mapper"
     models_dir.mkdir(exist_ok=True)
     seconds: dict[str, float] = {}
-    bar = tqdm(total=len(names), desc="sfm: features", unit="image", disable=not progress)
     start = time.perf_counter()
     second_stage = options.drop_repeated > 0 and options.refine_all_features
-    with _quiet_colmap():
+    with quiet_colmap() as console:
+        bar = tqdm(total=len(names), desc="sfm: features", unit="image", disable=not progress,
+                   file=console)
         inliers, features = _features_and_matches(database, image_dir, names, camera, options,
                                                   threads, seconds, bar,
                                                   keep_every_feature=second_stage)
@@ -578,6 +568,10 @@ def run_sfm(image_dir: Path, image_names: Sequence[str], work_dir: Path,
             dropped += dropped_again
             removed += removed_again
             seconds["all_features"] = time.perf_counter() - t
+        registered = sorted(im.name for im in rec.images.values() if im.has_pose)
+        bar.n = len(registered)
+        bar.set_description("sfm: done")
+        bar.close()
     # the distinct features' matches (image ids are the same in both databases)
     agreement = pose_agreement(rec, database, verified)
     if agreement["pairs_agreeing"] < MIN_PAIRS_AGREEING:
@@ -586,10 +580,6 @@ def run_sfm(image_dir: Path, image_names: Sequence[str], work_dir: Path,
             "(sound models: 60-100 %%): the matches are dominated by a repeated texture, and "
             "some views may be posed whole periods of it away", 100 * agreement["pairs_agreeing"])
     seconds["total"] = time.perf_counter() - start
-    registered = sorted(im.name for im in rec.images.values() if im.has_pose)
-    bar.n = len(registered)
-    bar.set_description("sfm: done")
-    bar.close()
     log.info("sfm: %d of %d images registered, %d points, %.2f px mean reprojection error; "
              "refinement dropped %s observations and deregistered %s", len(registered),
              len(names), rec.num_points3D(), rec.compute_mean_reprojection_error(), dropped,
@@ -620,9 +610,10 @@ def triangulate_known_poses(image_dir: Path, image_names: Sequence[str], work_di
     names, work_dir, options, threads = _prepare(image_names, work_dir, options)
     database = work_dir / "database.db"
     seconds: dict[str, float] = {}
-    bar = tqdm(total=len(names), desc="sfm: features", unit="image", disable=not progress)
     start = time.perf_counter()
-    with _quiet_colmap():
+    with quiet_colmap() as console:
+        bar = tqdm(total=len(names), desc="sfm: features", unit="image", disable=not progress,
+                   file=console)
         inliers, features = _features_and_matches(database, image_dir, names, camera, options,
                                                   threads, seconds, bar)
         bar.set_description("sfm: triangulating")
@@ -645,10 +636,10 @@ def triangulate_known_poses(image_dir: Path, image_names: Sequence[str], work_di
                                            options.refine_rounds, threads=threads,
                                            fixed_poses=True)
         seconds["refinement"] = time.perf_counter() - t
+        bar.n = len(names)
+        bar.set_description("sfm: done")
+        bar.close()
     seconds["total"] = time.perf_counter() - start
-    bar.n = len(names)
-    bar.set_description("sfm: done")
-    bar.close()
     log.info("sfm: %d points triangulated from %d posed images, %.2f px mean reprojection "
              "error; refinement dropped %s observations", rec.num_points3D(), len(names),
              rec.compute_mean_reprojection_error(), dropped)
