@@ -319,8 +319,9 @@ def test_twenty_asked_clicks_per_class_come_near_full_labels_on_a_toy_scene(tmp_
         from nerfbot.eval.evaluation import evaluate
         scores[name] = evaluate(model, load_dataset(data), "test", with_ssim=False)["label_miou"]
     print(scores)
-    # observed: full 0.79, 20 asked clicks (the default) 0.72 on a 2-core machine without
-    # AVX-512 and 0.69 with it; BENCHMARKS.md (section 13) finds asked clicks within 0.03-0.16
-    # mIoU of full label maps on three scenes
+    # observed with training seeds 0-6 (one thread per process, as the suite runs): full
+    # 0.79-0.81, 20 asked clicks (the default) 0.05-0.22 below; which pixels are asked follows
+    # float-level changes of the 200-step field. BENCHMARKS.md (section 13) finds asked clicks
+    # within 0.03-0.16 mIoU of full label maps on three larger scenes.
     assert scores["full"] > 0.7, scores
-    assert scores["clicks"] > scores["full"] - 0.15, scores
+    assert scores["clicks"] > scores["full"] - 0.25, scores
