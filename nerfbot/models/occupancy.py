@@ -76,7 +76,7 @@ class OccupancyModelConfig:
     """The same for training's density-only pass (with ``train_early_termination``), which
     finds where each training ray saturates; 0: rounds of ``inference_round_samples``. From 4
     instead of 16, that pass evaluates a third fewer samples on a trained bins scene and a
-    step late in a budget takes about 8 % less time (BENCHMARKS.md, section 7)."""
+    step late in a budget takes 5-9 % less time (BENCHMARKS.md, section 7)."""
     distortion_weight: float = 0.01
     """Weight of the distortion loss (mip-NeRF 360), which discourages fog spread along rays;
     distances are measured in cube diagonals. 0.01 gained 0.2-0.6 dB test PSNR on the tabletop
